@@ -1,0 +1,108 @@
+"""A native, batched TorchRL environment: N independent copies of one maze stepped with tensor ops.
+
+The dynamics are a precomputed transition table ``next_cell[cell, action]`` (see :meth:`Maze.transition_table`),
+so one step of all N copies is a single gather. Each copy resets on its own: TorchRL's ``step_and_maybe_reset``
+resets exactly the copies whose episode ended (``terminated`` on G or ``truncated`` at ``max_steps``).
+
+Observation keys are flat cell indices ``row * width + col`` (int64, shape (N,)), the form the Q-network, the count
+model and the replay buffer use; ``env.maze.pos(cell)`` turns one back into (row, col):
+    ``observation``   the agent's cell; it is also the achieved goal
+    ``desired_goal``  the goal's cell
+Each copy's step counter (for truncation at ``max_steps``) is env state, readable as ``env.step_count``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from ss_drl.envs.maze import Maze, load_maze
+
+
+class BatchedMazeEnv(EnvBase):
+    """N copies of a maze, stepped at once. Same semantics as :class:`ss_drl.envs.gridworld.MazeEnv`."""
+
+    def __init__(self, layout: str | Path | Maze = "easy", num_envs: int = 1, max_steps: int = 1000, device="cpu"):
+        if int(num_envs) < 1:
+            raise ValueError(f"num_envs must be >= 1 (got {num_envs})")
+        if int(max_steps) < 1:
+            raise ValueError(f"max_steps must be >= 1 (got {max_steps})")
+        super().__init__(batch_size=torch.Size([int(num_envs)]), device=device)
+        self.maze = layout if isinstance(layout, Maze) else load_maze(layout)
+        self.num_envs = int(num_envs)
+        self.max_steps = int(max_steps)
+        self.width = self.maze.width
+        n = self.num_envs
+        self.next_cell = torch.as_tensor(self.maze.transition_table(), device=self.device)
+        self.start_cell = self.maze.start_cell
+        self._goal_cell = torch.full((n,), self.maze.goal_cell, dtype=torch.int64, device=self.device)
+        # Mutable env state lives in a plain dict: rebinding an attribute of an nn.Module costs more than a step.
+        self._state = {
+            "cell": torch.full((n,), self.start_cell, dtype=torch.int64, device=self.device),
+            "steps": torch.zeros(n, dtype=torch.int64, device=self.device),
+        }
+
+        h, w = self.maze.height, self.maze.width
+        cell_spec = Bounded(low=0, high=h * w - 1, shape=(n,), dtype=torch.int64, device=self.device)
+        self.observation_spec = Composite(observation=cell_spec, desired_goal=cell_spec.clone(), shape=(n,))
+        self.action_spec = Categorical(4, shape=(n,), dtype=torch.int64, device=self.device)
+        self.reward_spec = Unbounded(shape=(n, 1), dtype=torch.float32, device=self.device)
+        self.done_spec = Composite(
+            done=Categorical(2, shape=(n, 1), dtype=torch.bool, device=self.device),
+            terminated=Categorical(2, shape=(n, 1), dtype=torch.bool, device=self.device),
+            truncated=Categorical(2, shape=(n, 1), dtype=torch.bool, device=self.device),
+            shape=(n,),
+        )
+
+    @property
+    def step_count(self) -> torch.Tensor:
+        """Steps taken in each copy's current episode."""
+        return self._state["steps"]
+
+    @property
+    def cell(self) -> torch.Tensor:
+        """Each copy's current cell."""
+        return self._state["cell"]
+
+    def _tensordict(self, source: dict[str, torch.Tensor]) -> TensorDictBase:
+        # Every entry is built here with the right shape, dtype and device: skip TensorDict's per-key validation,
+        # which costs more than the step itself.
+        return TensorDict._new_unsafe(source, batch_size=self.batch_size, device=self.device)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        state = self._state
+        if mask is None:
+            state["cell"] = torch.full_like(state["cell"], self.start_cell)
+            state["steps"].zero_()
+        else:
+            mask = mask.reshape(self.num_envs)
+            state["cell"] = state["cell"].masked_fill(mask, self.start_cell)
+            state["steps"].masked_fill_(mask, 0)
+        return self._tensordict({"observation": state["cell"], "desired_goal": self._goal_cell})
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        state = self._state
+        # A new tensor each step (never updated in place), so earlier observations stay valid.
+        cell = state["cell"] = self.next_cell[state["cell"], tensordict.get("action").reshape(self.num_envs)]
+        steps = state["steps"]
+        steps += 1
+        terminated = (cell == self._goal_cell).unsqueeze(-1)
+        truncated = (steps >= self.max_steps).unsqueeze(-1) & ~terminated
+        out = {
+            "observation": cell,
+            "desired_goal": self._goal_cell,
+            "reward": terminated.to(torch.float32),
+            "terminated": terminated,
+            "truncated": truncated,
+            "done": terminated | truncated,
+        }
+        return self._tensordict(out)
+
+    def _set_seed(self, seed: int | None) -> None:
+        # The dynamics and the start state are deterministic: there is nothing to seed.
+        return None

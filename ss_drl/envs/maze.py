@@ -1,0 +1,236 @@
+"""Maze layouts: parsing, validation, shortest paths and random generation.
+
+A maze is a grid of cells, row 0 at the top. ``#`` is a wall, ``.`` a free cell, ``S`` the start and ``G`` the goal.
+There is no outer border: a move off the grid, like a move into a wall, leaves the agent where it is.
+
+Cells are also addressed by a flat index ``row * width + col``; the environments, the count model and the Q-network
+all speak in these indices.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import deque
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+WALL, FREE, START, GOAL = "#", ".", "S", "G"
+
+#: Action ``a`` moves by ``ACTIONS[a]`` = (d_row, d_col): 0 right, 1 down, 2 left, 3 up (Keulen's order).
+ACTIONS: tuple[tuple[int, int], ...] = ((0, 1), (1, 0), (0, -1), (-1, 0))
+ACTION_NAMES = ("right", "down", "left", "up")
+
+#: Preset name -> file shipped in ``ss_drl/mazes``.
+PRESETS = ("easy", "medium", "hard", "extreme", "easy_small", "medium_small", "hard_small")
+
+
+class MazeError(ValueError):
+    """A maze layout that cannot be used. The message names the source and, where it applies, line and column."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Maze:
+    """An immutable maze layout.
+
+    Attributes:
+        walls: bool array of shape (height, width), True where a cell is a wall.
+        start: (row, col) of S.
+        goal: (row, col) of G.
+        name: where the layout came from (a preset name, a file path or ``random(...)``).
+    """
+
+    walls: np.ndarray
+    start: tuple[int, int]
+    goal: tuple[int, int]
+    name: str = "maze"
+
+    @property
+    def height(self) -> int:
+        return int(self.walls.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.walls.shape[1])
+
+    @property
+    def n_cells(self) -> int:
+        return self.height * self.width
+
+    @property
+    def n_free(self) -> int:
+        return int((~self.walls).sum())
+
+    def cell(self, pos: tuple[int, int]) -> int:
+        """Flat index of a (row, col) position."""
+        return int(pos[0]) * self.width + int(pos[1])
+
+    def pos(self, cell: int) -> tuple[int, int]:
+        """(row, col) of a flat cell index."""
+        return divmod(int(cell), self.width)
+
+    @property
+    def start_cell(self) -> int:
+        return self.cell(self.start)
+
+    @property
+    def goal_cell(self) -> int:
+        return self.cell(self.goal)
+
+    def move(self, pos: tuple[int, int], action: int) -> tuple[int, int]:
+        """The position after taking ``action`` in ``pos``: a bump into a wall or off the grid stays put."""
+        dr, dc = ACTIONS[int(action)]
+        r, c = pos[0] + dr, pos[1] + dc
+        if 0 <= r < self.height and 0 <= c < self.width and not self.walls[r, c]:
+            return (r, c)
+        return (int(pos[0]), int(pos[1]))
+
+    def transition_table(self) -> np.ndarray:
+        """int64 array (n_cells, 4): the next cell for every cell and action, computed with array shifts."""
+        h, w = self.walls.shape
+        rows, cols = np.divmod(np.arange(h * w), w)
+        table = np.empty((h * w, len(ACTIONS)), dtype=np.int64)
+        for a, (dr, dc) in enumerate(ACTIONS):
+            r, c = rows + dr, cols + dc
+            inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+            r_in, c_in = np.where(inside, r, 0), np.where(inside, c, 0)
+            ok = inside & ~self.walls[r_in, c_in]
+            table[:, a] = np.where(ok, r_in * w + c_in, rows * w + cols)
+        return table
+
+    def distances_from(self, pos: tuple[int, int]) -> np.ndarray:
+        """BFS distances (in steps) from ``pos`` to every cell; -1 for walls and unreachable cells."""
+        dist = np.full(self.walls.shape, -1, dtype=np.int64)
+        dist[pos] = 0
+        queue = deque([tuple(pos)])
+        while queue:
+            cur = queue.popleft()
+            for a in range(len(ACTIONS)):
+                nxt = self.move(cur, a)
+                if dist[nxt] < 0:
+                    dist[nxt] = dist[cur] + 1
+                    queue.append(nxt)
+        return dist
+
+    @property
+    def shortest_path_length(self) -> int:
+        """Steps on a shortest path from S to G (the optimal episode length)."""
+        return int(self.distances_from(self.start)[self.goal])
+
+    def to_text(self) -> str:
+        chars = np.where(self.walls, WALL, FREE).astype("<U1")
+        chars[self.start] = START
+        chars[self.goal] = GOAL
+        return "\n".join("".join(row) for row in chars) + "\n"
+
+    def __repr__(self) -> str:
+        return f"Maze({self.name!r}, {self.height}x{self.width}, start={self.start}, goal={self.goal})"
+
+
+def parse_maze(text: str, source: str = "<string>") -> Maze:
+    """Parse a maze from its text form; raise :class:`MazeError` naming ``source``, line and column on bad input."""
+    lines = text.splitlines()
+    while lines and not lines[-1].strip():
+        lines.pop()
+    if not lines:
+        raise MazeError(f"{source}: the maze file is empty")
+    width = len(lines[0])
+    starts, goals = [], []
+    for i, line in enumerate(lines):
+        if len(line) != width:
+            raise MazeError(
+                f"{source}:{i + 1}:{min(len(line), width) + 1}: ragged rows: line {i + 1} has {len(line)} "
+                f"characters, line 1 has {width}"
+            )
+        for j, ch in enumerate(line):
+            if ch not in (WALL, FREE, START, GOAL):
+                raise MazeError(f"{source}:{i + 1}:{j + 1}: unknown character {ch!r} (allowed: '#', '.', 'S', 'G')")
+            if ch == START:
+                starts.append((i, j))
+            elif ch == GOAL:
+                goals.append((i, j))
+    for symbol, found, what in ((START, starts, "start"), (GOAL, goals, "goal")):
+        if not found:
+            raise MazeError(f"{source}: no {what} cell {symbol!r} in the maze")
+        if len(found) > 1:
+            (r, c) = found[1]
+            raise MazeError(
+                f"{source}:{r + 1}:{c + 1}: more than one {what} cell {symbol!r} (the first is at line "
+                f"{found[0][0] + 1}, column {found[0][1] + 1})"
+            )
+    walls = np.array([[ch == WALL for ch in line] for line in lines], dtype=bool)
+    maze = Maze(walls=walls, start=starts[0], goal=goals[0], name=source)
+    if maze.distances_from(maze.start)[maze.goal] < 0:
+        r, c = maze.goal
+        raise MazeError(f"{source}:{r + 1}:{c + 1}: the goal 'G' is unreachable from the start 'S'")
+    return maze
+
+
+def preset_path(name: str) -> Path:
+    """Path of a shipped preset maze file."""
+    if name not in PRESETS:
+        raise MazeError(f"unknown maze preset {name!r} (allowed: {', '.join(PRESETS)})")
+    return Path(str(resources.files("ss_drl") / "mazes" / f"{name}.txt"))
+
+
+def load_maze(path_or_preset: str | Path) -> Maze:
+    """Load a preset by name (``"easy"``) or a maze file by path."""
+    key = str(path_or_preset)
+    if key in PRESETS:
+        return dataclasses.replace(parse_maze(preset_path(key).read_text(), source=key), name=key)
+    path = Path(key).expanduser()
+    if not path.is_file():
+        raise MazeError(f"{key}: maze file not found (nor a preset: {', '.join(PRESETS)})")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise MazeError(f"{key}: cannot read the maze file ({exc})") from exc
+    return parse_maze(text, source=key)
+
+
+def random_maze(height: int, width: int, scale: int = 1, seed: int | None = None) -> Maze:
+    """A random perfect maze by a seeded recursive backtracker, with S and G far apart.
+
+    Args:
+        height, width: size of the *layout* in cells before scaling (each layout cell is a room or a wall).
+        scale: corridor width: each layout cell becomes a ``scale x scale`` block, as in Keulen's presets.
+        seed: RNG seed; the same seed gives the same maze.
+
+    S is placed at one end of a longest shortest path (found by two BFS passes) and G at the other.
+    """
+    if height < 3 or width < 3:
+        raise MazeError(f"random maze: height and width must be >= 3 (got {height}x{width})")
+    if scale < 1:
+        raise MazeError(f"random maze: scale must be >= 1 (got {scale})")
+    rng = np.random.default_rng(seed)
+    walls = np.ones((height, width), dtype=bool)
+    rooms_r, rooms_c = (height + 1) // 2, (width + 1) // 2
+    visited = np.zeros((rooms_r, rooms_c), dtype=bool)
+    stack = [(int(rng.integers(rooms_r)), int(rng.integers(rooms_c)))]
+    visited[stack[0]] = True
+    walls[2 * stack[0][0], 2 * stack[0][1]] = False
+    while stack:
+        r, c = stack[-1]
+        options = [
+            (r + dr, c + dc)
+            for dr, dc in ACTIONS
+            if 0 <= r + dr < rooms_r and 0 <= c + dc < rooms_c and not visited[r + dr, c + dc]
+        ]
+        if not options:
+            stack.pop()
+            continue
+        nr, nc = options[int(rng.integers(len(options)))]
+        visited[nr, nc] = True
+        walls[r + nr, c + nc] = False  # the wall between (2r, 2c) and (2nr, 2nc)
+        walls[2 * nr, 2 * nc] = False
+        stack.append((nr, nc))
+    walls = np.kron(walls, np.ones((scale, scale), dtype=bool)).astype(bool)
+    free = Maze(walls=walls, start=(0, 0), goal=(0, 0))
+    # Two BFS passes give (approximately, exactly on a tree) the two ends of the longest shortest path.
+    a = np.unravel_index(np.argmax(free.distances_from((0, 0))), walls.shape)
+    dist_a = free.distances_from(a)
+    b = np.unravel_index(np.argmax(dist_a), walls.shape)
+    start = (int(a[0]), int(a[1]))
+    goal = (int(b[0]), int(b[1]))
+    return Maze(walls=walls, start=start, goal=goal, name=f"random({height}x{width},scale={scale},seed={seed})")
