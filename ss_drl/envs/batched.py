@@ -103,6 +103,11 @@ class BatchedMazeEnv(EnvBase):
         }
         return self._tensordict(out)
 
+    def set_state(self, cell: torch.Tensor, steps: torch.Tensor) -> None:
+        """Restore each copy's cell and step counter (used when a run resumes from a checkpoint)."""
+        self._state["cell"] = cell.clone().to(self.device)
+        self._state["steps"] = steps.clone().to(self.device)
+
     def _set_seed(self, seed: int | None) -> None:
         # The dynamics and the start state are deterministic: there is nothing to seed.
         return None

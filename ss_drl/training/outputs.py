@@ -9,6 +9,14 @@ These are a contract: plots, sweeps and external scripts parse them.
 
 from __future__ import annotations
 
+import csv
+import json
+import math
+import os
+import sys
+import warnings
+from pathlib import Path
+
 EPISODES_FILE = "episodes.csv"
 EVAL_FILE = "eval.csv"
 SUMMARY_FILE = "summary.json"
@@ -53,3 +61,138 @@ SUMMARY_KEYS = (
     "updates_per_s",
     "config",  # the resolved Hydra config
 )
+
+
+def _csv_rows(path: Path) -> int:
+    """Data rows in a CSV file (0 if missing)."""
+    if not path.exists():
+        return 0
+    with path.open() as f:
+        return max(sum(1 for _ in f) - 1, 0)
+
+
+def truncate_csv(path: Path, keep_rows: int) -> None:
+    """Keep the header and the first ``keep_rows`` data rows (used on resume, to drop rows after the checkpoint)."""
+    if not path.exists():
+        return
+    with path.open() as f:
+        lines = f.readlines()
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text("".join(lines[: keep_rows + 1]))
+    os.replace(tmp, path)
+
+
+def write_json_atomic(path: Path, data: dict) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=str) + "\n")
+    os.replace(tmp, path)
+
+
+class RunLogger:
+    """Writes episodes.csv and eval.csv (always), and mirrors metrics to W&B when it is on.
+
+    W&B never blocks training: if wandb is missing or its init fails, the run goes on with CSV and one warning.
+    """
+
+    def __init__(self, run_dir: Path, cfg, resolved_config: dict, resume_rows: tuple[int, int] | None = None):
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.episodes_path = self.run_dir / EPISODES_FILE
+        self.eval_path = self.run_dir / EVAL_FILE
+        if resume_rows is None:
+            for path in (self.episodes_path, self.eval_path):
+                path.unlink(missing_ok=True)
+        else:
+            truncate_csv(self.episodes_path, resume_rows[0])
+            truncate_csv(self.eval_path, resume_rows[1])
+        self._episodes = self._open(self.episodes_path, EPISODE_COLUMNS)
+        self._eval = self._open(self.eval_path, EVAL_COLUMNS)
+        self.episode_rows = _csv_rows(self.episodes_path)
+        self.eval_rows = _csv_rows(self.eval_path)
+        self.wandb = self._init_wandb(cfg, resolved_config)
+
+    @staticmethod
+    def _open(path: Path, columns: tuple[str, ...]):
+        new = not path.exists()
+        handle = path.open("a", newline="")
+        writer = csv.writer(handle)
+        if new:
+            writer.writerow(columns)
+        return handle, writer
+
+    def _init_wandb(self, cfg, resolved_config: dict):
+        logger_cfg = cfg.logger
+        if logger_cfg.backend != "wandb" or logger_cfg.mode == "disabled":
+            return None
+        try:
+            import wandb
+
+            return wandb.init(
+                project=logger_cfg.project,
+                entity=logger_cfg.entity,
+                group=logger_cfg.group or cfg.experiment,
+                name=f"{cfg.experiment}-seed{cfg.seed}",
+                mode=logger_cfg.mode,
+                dir=str(self.run_dir),
+                config=resolved_config,
+                reinit="finish_previous",
+                resume="allow",
+                id=self._wandb_id(),
+            )
+        except Exception as exc:  # noqa: BLE001  (any failure of an optional dashboard must not stop training)
+            warnings.warn(f"W&B is off for this run: wandb init failed ({type(exc).__name__}: {exc})", stacklevel=2)
+            return None
+
+    def _wandb_id(self) -> str:
+        """A stable W&B run id per run directory, so a resumed run continues the same W&B run."""
+        path = self.run_dir / ".wandb_id"
+        if not path.exists():
+            import secrets
+
+            path.write_text(secrets.token_hex(8))
+        return path.read_text().strip()
+
+    def log_episode(self, row: dict) -> None:
+        self._episodes[1].writerow([row[c] for c in EPISODE_COLUMNS])
+        self.episode_rows += 1
+        if self.episode_rows % 50 == 0:
+            self._episodes[0].flush()
+
+    def log_eval(self, row: dict) -> None:
+        self._eval[1].writerow([row[c] for c in EVAL_COLUMNS])
+        self._eval[0].flush()
+        self.eval_rows += 1
+
+    def log_metrics(self, metrics: dict, step: int) -> None:
+        if self.wandb is not None:
+            clean = {k: v for k, v in metrics.items() if not (isinstance(v, float) and math.isnan(v))}
+            self.wandb.log(clean, step=step)
+
+    def log_image(self, key: str, path: Path, step: int) -> None:
+        if self.wandb is not None:
+            import wandb
+
+            self.wandb.log({key: wandb.Image(str(path))}, step=step)
+
+    def flush(self) -> None:
+        self._episodes[0].flush()
+        self._eval[0].flush()
+
+    def close(self, summary: dict | None = None) -> None:
+        self.flush()
+        self._episodes[0].close()
+        self._eval[0].close()
+        if self.wandb is not None:
+            if summary:
+                for key, value in summary.items():
+                    if key != "config" and value is not None:
+                        self.wandb.summary[key] = value
+            self.wandb.finish()
+            self.wandb = None
+
+
+def progress_bar(total: int, initial: int = 0):
+    """A tqdm bar on a terminal; quiet (disabled) when stderr is not a terminal."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, initial=initial, unit="step", disable=not sys.stderr.isatty(), dynamic_ncols=True)

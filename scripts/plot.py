@@ -1,0 +1,18 @@
+#!/usr/bin/env python
+"""Plot and tabulate training runs: Fig. 5 (return per episode), Fig. 6 (steps per episode), steps to the first goal,
+and results.md, from run or Hydra multirun directories.
+
+    python scripts/plot.py multirun/2026-11-22/10-00-00 [more dirs] [--out OUT] [--smooth K] [--bootstrap N] [--seed S]
+
+All the logic lives in :mod:`ss_drl.analysis`; see ``ss_drl.analysis.plots.main``.
+"""
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without `pip install -e .`
+
+from ss_drl.analysis import main  # noqa: E402
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,503 @@
+"""Find, load and aggregate run directories: learning curves, bootstrap CIs and the results table.
+
+A *run directory* is any directory holding :data:`~ss_drl.training.outputs.SUMMARY_FILE`; it must also hold
+:data:`~ss_drl.training.outputs.EPISODES_FILE` and :data:`~ss_drl.training.outputs.EVAL_FILE`. The file names, CSV
+columns and summary keys all come from :mod:`ss_drl.training.outputs`, the single source of truth for the format.
+
+Nothing here imports matplotlib; the figures live in :mod:`ss_drl.analysis.plots`.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import sys
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ss_drl.training.outputs import EPISODE_COLUMNS, EPISODES_FILE, EVAL_COLUMNS, EVAL_FILE, SUMMARY_FILE, SUMMARY_KEYS
+
+
+def _field(names: tuple[str, ...], name: str) -> str:
+    """Return ``name`` after checking that the output contract in :mod:`ss_drl.training.outputs` defines it.
+
+    Each column or key this module reads is named exactly once, below, and checked at import time, so that renaming it
+    in ``outputs.py`` fails loudly here instead of silently reading nothing.
+    """
+    if name not in names:
+        raise ImportError(f"ss_drl.training.outputs no longer defines {name!r}; update ss_drl.analysis.aggregate")
+    return name
+
+
+# episodes.csv columns read here
+EP_EPISODE = _field(EPISODE_COLUMNS, "episode")
+EP_ENV_STEPS = _field(EPISODE_COLUMNS, "env_steps")
+EP_LENGTH = _field(EPISODE_COLUMNS, "length")
+EP_RETURN = _field(EPISODE_COLUMNS, "return")
+EP_SUCCESS = _field(EPISODE_COLUMNS, "success")
+# eval.csv columns read here
+EV_ENV_STEPS = _field(EVAL_COLUMNS, "env_steps")
+EV_EPISODE = _field(EVAL_COLUMNS, "episode")
+EV_LENGTH = _field(EVAL_COLUMNS, "eval_length")
+EV_SUCCESS = _field(EVAL_COLUMNS, "eval_success")
+# summary.json keys read here
+SK_METHOD = _field(SUMMARY_KEYS, "method")
+SK_MAZE = _field(SUMMARY_KEYS, "maze")
+SK_SEED = _field(SUMMARY_KEYS, "seed")
+SK_COMPLETED = _field(SUMMARY_KEYS, "completed")
+SK_FIRST_GOAL = _field(SUMMARY_KEYS, "first_goal_env_step")
+SK_EPISODES = _field(SUMMARY_KEYS, "episodes")
+SK_OPTIMAL = _field(SUMMARY_KEYS, "optimal_length")
+SK_WALL = _field(SUMMARY_KEYS, "wall_s")
+
+#: Numeric columns parsed from each CSV (the others, e.g. the ``ss_target`` string, are only checked for presence).
+EPISODE_NUMERIC = (EP_EPISODE, EP_ENV_STEPS, EP_LENGTH, EP_RETURN, EP_SUCCESS)
+EVAL_NUMERIC = (EV_ENV_STEPS, EV_EPISODE, EV_LENGTH, EV_SUCCESS)
+
+#: Episodes ``1..EARLY_EPISODES`` are the "early" block of the table, the rest the "late" one.
+EARLY_EPISODES = 100
+#: A greedy evaluation is "near optimal" when it succeeds with ``eval_length <= NEAR_OPTIMAL * optimal_length``.
+NEAR_OPTIMAL = 1.05
+
+
+class AnalysisError(Exception):
+    """A problem that stops the analysis as a whole (no such directory, no complete runs)."""
+
+
+class IncompleteRun(Exception):
+    """A run directory that cannot be used; the message says why (one line)."""
+
+
+@dataclass
+class Run:
+    """One loaded run directory.
+
+    ``episodes`` and ``evals`` map the numeric columns (:data:`EPISODE_NUMERIC`, :data:`EVAL_NUMERIC`) to float arrays,
+    one entry per CSV row in file order; ``episodes[EP_EPISODE]`` is always ``1..N``.
+    """
+
+    path: Path
+    summary: dict
+    episodes: dict[str, np.ndarray]
+    evals: dict[str, np.ndarray]
+
+    @property
+    def maze(self) -> str:
+        return str(self.summary[SK_MAZE])
+
+    @property
+    def method(self) -> str:
+        return str(self.summary[SK_METHOD])
+
+    @property
+    def seed(self):
+        return self.summary[SK_SEED]
+
+    @property
+    def n_episodes(self) -> int:
+        return len(self.episodes[EP_EPISODE])
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Finding and loading runs
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def find_run_dirs(roots: Iterable[str | os.PathLike]) -> list[Path]:
+    """Every directory at or below ``roots`` that holds a ``summary.json``, sorted and without duplicates.
+
+    Raises :class:`AnalysisError` when a root is not an existing directory.
+    """
+    found: set[Path] = set()
+    for root in roots:
+        root = Path(root)
+        if not root.is_dir():
+            raise AnalysisError(f"not a directory: {root}")
+        for dirpath, dirnames, filenames in os.walk(root):
+            dirnames.sort()
+            if SUMMARY_FILE in filenames:
+                found.add(Path(dirpath).resolve())
+    return sorted(found)
+
+
+def _one_line(text: object) -> str:
+    return " ".join(str(text).split())
+
+
+def _read_csv(path: Path, columns: tuple[str, ...], numeric: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """Read a run CSV strictly: the header must hold ``columns``, every row must have the header's field count and
+    every ``numeric`` cell must parse as a finite number. Raises :class:`IncompleteRun` otherwise."""
+    name = path.name
+    if not path.is_file():
+        raise IncompleteRun(f"missing {name}")
+    try:
+        with path.open(newline="") as f:
+            rows = list(csv.reader(f))
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise IncompleteRun(f"cannot read {name}: {_one_line(e)}") from None
+    if not rows:
+        raise IncompleteRun(f"{name} is empty (no header)")
+    header = rows[0]
+    missing = [c for c in columns if c not in header]
+    if missing:
+        raise IncompleteRun(f"{name} lacks columns {', '.join(missing)}")
+    where = [header.index(c) for c in numeric]
+    values = np.empty((len(rows) - 1, len(numeric)), dtype=float)
+    for i, row in enumerate(rows[1:]):
+        line = i + 2
+        if len(row) != len(header):
+            raise IncompleteRun(f"{name} line {line} has {len(row)} fields, expected {len(header)} (partial file?)")
+        for j, k in enumerate(where):
+            try:
+                v = float(row[k])
+            except ValueError:
+                v = math.nan
+            if not math.isfinite(v):
+                raise IncompleteRun(f"{name} line {line}: bad {numeric[j]} value {row[k]!r}")
+            values[i, j] = v
+    return {c: values[:, j].copy() for j, c in enumerate(numeric)}
+
+
+def load_run(path: str | os.PathLike) -> Run:
+    """Load one run directory; raises :class:`IncompleteRun` (with a one-line reason) when it cannot be used.
+
+    A run is incomplete when a file is missing or unreadable, a CSV row is cut short, ``summary.json`` lacks the
+    keys used here or says ``completed: false``, the episode column is not ``1..N``, or ``episodes.csv`` has fewer or
+    more rows than the summary's episode count (a partially written file).
+    """
+    path = Path(path)
+    summary_path = path / SUMMARY_FILE
+    try:
+        summary = json.loads(summary_path.read_text())
+    except FileNotFoundError:
+        raise IncompleteRun(f"missing {SUMMARY_FILE}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise IncompleteRun(f"unreadable {SUMMARY_FILE}: {_one_line(e)}") from None
+    if not isinstance(summary, dict):
+        raise IncompleteRun(f"{SUMMARY_FILE} is not a JSON object")
+    missing = [k for k in (SK_METHOD, SK_MAZE, SK_SEED, SK_COMPLETED) if k not in summary]
+    if missing:
+        raise IncompleteRun(f"{SUMMARY_FILE} lacks {', '.join(missing)}")
+    if summary[SK_COMPLETED] is not True:
+        raise IncompleteRun(f"{SUMMARY_FILE} says {SK_COMPLETED}={json.dumps(summary[SK_COMPLETED])}")
+    episodes = _read_csv(path / EPISODES_FILE, EPISODE_COLUMNS, EPISODE_NUMERIC)
+    evals = _read_csv(path / EVAL_FILE, EVAL_COLUMNS, EVAL_NUMERIC)
+    n = len(episodes[EP_EPISODE])
+    if not np.array_equal(episodes[EP_EPISODE], np.arange(1, n + 1)):
+        raise IncompleteRun(f"{EPISODES_FILE} column {EP_EPISODE} is not 1..{n}")
+    expected = summary.get(SK_EPISODES)
+    if isinstance(expected, int) and not isinstance(expected, bool) and expected != n:
+        raise IncompleteRun(
+            f"{EPISODES_FILE} has {n} episodes but {SUMMARY_FILE} says {SK_EPISODES}={expected} (partial file?)"
+        )
+    return Run(path=path, summary=summary, episodes=episodes, evals=evals)
+
+
+def _warn_stderr(message: str) -> None:
+    print(message, file=sys.stderr)
+
+
+def load_runs(roots: Iterable[str | os.PathLike], warn: Callable[[str], None] = _warn_stderr) -> list[Run]:
+    """Load every complete run under ``roots``; each skipped run gets one ``warn("warning: skipping DIR: why")``.
+
+    Raises :class:`AnalysisError` when a root is not a directory or no complete run is found.
+    """
+    roots = list(roots)
+    runs = []
+    for d in find_run_dirs(roots):
+        try:
+            runs.append(load_run(d))
+        except IncompleteRun as e:
+            warn(f"warning: skipping {d}: {e}")
+    if not runs:
+        raise AnalysisError(f"no complete runs under {', '.join(str(r) for r in roots)}")
+    return runs
+
+
+def _seed_key(seed) -> tuple:
+    return (0, seed, "") if isinstance(seed, (int, float)) and not isinstance(seed, bool) else (1, 0, str(seed))
+
+
+def group_runs(runs: Iterable[Run]) -> dict[tuple[str, str], list[Run]]:
+    """Group runs by ``(maze, method)``: keys sorted, runs in each group sorted by seed (then path)."""
+    groups: dict[tuple[str, str], list[Run]] = {}
+    for run in runs:
+        groups.setdefault((run.maze, run.method), []).append(run)
+    return {k: sorted(groups[k], key=lambda r: (_seed_key(r.seed), str(r.path))) for k in sorted(groups)}
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# Statistics
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def bootstrap_ci(
+    values: Sequence[float] | np.ndarray,
+    n_resamples: int = 1000,
+    confidence: float = 0.95,
+    rng: np.random.Generator | int | None = None,
+) -> tuple[float, float, float]:
+    """Percentile-bootstrap confidence interval of the mean: returns ``(mean, low, high)``.
+
+    With ``n = len(values)``, draw ``n_resamples`` resamples of ``n`` values with replacement, in one call
+    ``idx = rng.integers(0, n, size=(n_resamples, n))``; take the mean of each resample, and return the
+    ``(1 - confidence) / 2`` and ``(1 + confidence) / 2`` percentiles of those means (``np.percentile``, linear
+    interpolation) as ``low`` and ``high``. ``mean`` is the plain mean of ``values``.
+
+    With a single value (or identical values) every resample mean equals it, so the CI collapses to that value.
+    ``rng`` is a ``numpy.random.Generator`` or a seed for ``numpy.random.default_rng``; pass a fixed seed for
+    reproducible intervals.
+    """
+    v = np.asarray(values, dtype=float).reshape(-1)
+    if v.size == 0:
+        raise ValueError("bootstrap_ci needs at least one value")
+    mean, low, high = _bootstrap_columns(v[:, None], n_resamples, confidence, rng)
+    return float(mean[0]), float(low[0]), float(high[0])
+
+
+def _bootstrap_columns(
+    samples: np.ndarray, n_resamples: int, confidence: float, rng: np.random.Generator | int | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`bootstrap_ci` for each column of ``samples`` (shape ``(n, k)``), all columns sharing one draw of
+    resample indices (so each column gets exactly what ``bootstrap_ci`` gives for it with the same ``rng``)."""
+    if n_resamples < 1:
+        raise ValueError(f"n_resamples must be >= 1, got {n_resamples}")
+    if not 0 < confidence < 1:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
+    rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    n, k = samples.shape
+    idx = rng.integers(0, n, size=(n_resamples, n))
+    q = [100 * (1 - confidence) / 2, 100 * (1 + confidence) / 2]
+    low, high = np.empty(k), np.empty(k)
+    chunk = max(1, 4_000_000 // (n_resamples * n))  # bound the (n_resamples, n, chunk) temporary
+    for s in range(0, k, chunk):
+        means = samples[:, s : s + chunk][idx].mean(axis=1)  # (n_resamples, chunk)
+        low[s : s + chunk], high[s : s + chunk] = np.percentile(means, q, axis=0)
+    return samples.mean(axis=0), low, high
+
+
+def moving_average(x: Sequence[float] | np.ndarray, k: int) -> np.ndarray:
+    """Trailing moving average with window ``k``: ``y[i] = mean(x[max(0, i - k + 1) : i + 1])``.
+
+    The output has the input's length; the first ``k - 1`` entries average the values seen so far. ``k = 1`` returns
+    a copy of ``x``.
+    """
+    if k < 1:
+        raise ValueError(f"smoothing window must be >= 1, got {k}")
+    x = np.asarray(x, dtype=float)
+    c = np.concatenate([[0.0], np.cumsum(x)])
+    i = np.arange(1, len(x) + 1)
+    lo = np.maximum(i - k, 0)
+    return (c[i] - c[lo]) / (i - lo)
+
+
+@dataclass
+class Curve:
+    """Per-episode aggregate of one metric over seeds: ``episode`` is ``1..max episodes``; ``n_seeds[i]`` is how many
+    seeds have episode ``episode[i]``; ``mean``/``low``/``high`` are the bootstrap mean and CI over those seeds."""
+
+    episode: np.ndarray
+    mean: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    n_seeds: np.ndarray
+
+
+def aggregate_curve(
+    series: Sequence[Sequence[float] | np.ndarray],
+    smooth: int = 1,
+    n_resamples: int = 1000,
+    confidence: float = 0.95,
+    seed: int = 0,
+) -> Curve:
+    """Aggregate one per-episode metric over seeds, aligned by episode index.
+
+    Each seed's series is smoothed first (:func:`moving_average` with window ``smooth``). Episode ``i`` is aggregated
+    over the seeds that have it (seeds may have different numbers of episodes). The band is :func:`bootstrap_ci`
+    over those seeds with ``rng = numpy.random.default_rng(seed)`` -- the same generator state for every episode, so
+    the band at episode ``i`` equals ``bootstrap_ci(values_at_i, n_resamples, confidence, default_rng(seed))`` with
+    the values in the order of ``series``.
+    """
+    smoothed = [moving_average(s, smooth) for s in series]
+    lengths = np.array([len(s) for s in smoothed], dtype=int)
+    n_max = int(lengths.max(initial=0))
+    mean, low, high = np.full(n_max, np.nan), np.full(n_max, np.nan), np.full(n_max, np.nan)
+    n_seeds = (lengths[:, None] > np.arange(n_max)[None, :]).sum(axis=0)
+    # Episodes with the same seed count have the same set of seeds: bootstrap each such block at once.
+    for m in sorted(set(n_seeds.tolist()) - {0}):
+        cols = np.flatnonzero(n_seeds == m)
+        have = [s for s, n in zip(smoothed, lengths) if n > cols[0]]
+        block = np.stack([s[cols] for s in have])
+        mean[cols], low[cols], high[cols] = _bootstrap_columns(
+            block, n_resamples, confidence, np.random.default_rng(seed)
+        )
+    return Curve(episode=np.arange(1, n_max + 1), mean=mean, low=low, high=high, n_seeds=n_seeds)
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# The results table
+# ----------------------------------------------------------------------------------------------------------------------
+
+
+def first_goal_env_step(run: Run) -> float | None:
+    """Env steps until G was first reached (the summary's ``first_goal_env_step``), or None if never."""
+    value = run.summary.get(SK_FIRST_GOAL)
+    return float(value) if _is_number(value) else None
+
+
+def near_optimal_env_step(run: Run, tolerance: float = NEAR_OPTIMAL) -> float | None:
+    """Env steps at the first greedy evaluation that succeeds within ``tolerance`` x the shortest path, or None.
+
+    "Within" means ``eval_success == 1`` and ``eval_length <= tolerance * optimal_length``; None also when the
+    summary has no ``optimal_length``.
+    """
+    optimal = run.summary.get(SK_OPTIMAL)
+    if not isinstance(optimal, (int, float)) or isinstance(optimal, bool):
+        return None
+    ok = (run.evals[EV_SUCCESS] == 1) & (run.evals[EV_LENGTH] <= tolerance * optimal)
+    hits = np.flatnonzero(ok)
+    return float(run.evals[EV_ENV_STEPS][hits[0]]) if hits.size else None
+
+
+def _episode_block_mean(runs: Sequence[Run], column: str, first: int, last: float) -> float | None:
+    """Mean over seeds of each seed's mean of ``column`` over episodes ``first..last``; seeds without such episodes
+    are left out; None when no seed has any."""
+    per_seed = []
+    for run in runs:
+        ep = run.episodes[EP_EPISODE]
+        sel = (ep >= first) & (ep <= last)
+        if sel.any():
+            per_seed.append(float(run.episodes[column][sel].mean()))
+    return float(np.mean(per_seed)) if per_seed else None
+
+
+@dataclass
+class TableRow:
+    """One ``(maze, method)`` row of the results table (numbers; :meth:`cells` formats them).
+
+    * ``first_goal_*``: env steps until G was first reached, over the seeds that reached it (``first_goal_reached``
+      of ``seeds``): mean with its 95% percentile-bootstrap CI ``[first_goal_low, first_goal_high]``, and median;
+      None when no seed reached G.
+    * ``return_early`` / ``length_early``: mean over seeds of each seed's mean over episodes ``1..EARLY_EPISODES``;
+      ``*_late``: the same over episodes ``EARLY_EPISODES + 1`` onwards (None when no seed has them).
+    * ``near_optimal_median``: median over the seeds that got there (``near_optimal_reached`` of ``seeds``) of the env
+      steps until the greedy evaluation succeeded within 5% of the shortest path; None ("never") when none did.
+    * ``wall_median``: median wall time per run in seconds (None when no summary has it).
+    """
+
+    maze: str
+    method: str
+    seeds: int
+    first_goal_mean: float | None
+    first_goal_low: float | None
+    first_goal_high: float | None
+    first_goal_median: float | None
+    first_goal_reached: int
+    return_early: float | None
+    return_late: float | None
+    length_early: float | None
+    length_late: float | None
+    near_optimal_median: float | None
+    near_optimal_reached: int
+    wall_median: float | None
+
+    def cells(self) -> list[str]:
+        """The row's markdown cells, in :data:`TABLE_HEADER` order."""
+        if self.first_goal_mean is None:
+            first_goal, first_median = "never", "never"
+        else:
+            half = (self.first_goal_high - self.first_goal_low) / 2
+            first_goal, first_median = f"{self.first_goal_mean:,.1f} ± {half:,.1f}", f"{self.first_goal_median:,.1f}"
+        return [
+            self.maze,
+            self.method,
+            str(self.seeds),
+            first_goal,
+            first_median,
+            f"{self.first_goal_reached}/{self.seeds} seeds",
+            _fmt(self.return_early, ".3f"),
+            _fmt(self.return_late, ".3f"),
+            _fmt(self.length_early, ",.1f"),
+            _fmt(self.length_late, ",.1f"),
+            "never" if self.near_optimal_median is None else f"{self.near_optimal_median:,.1f}",
+            f"{self.near_optimal_reached}/{self.seeds} seeds",
+            _fmt(self.wall_median, ",.1f"),
+        ]
+
+
+def _fmt(x: float | None, spec: str) -> str:
+    return "–" if x is None else format(x, spec)
+
+
+TABLE_HEADER = (
+    "maze",
+    "method",
+    "seeds",
+    "first goal: env steps (mean ± 95% CI)",
+    "first goal: median",
+    "reached goal",
+    f"return (ep 1-{EARLY_EPISODES})",
+    f"return (ep {EARLY_EPISODES + 1}+)",
+    f"length (ep 1-{EARLY_EPISODES})",
+    f"length (ep {EARLY_EPISODES + 1}+)",
+    f"env steps to ≤{NEAR_OPTIMAL:g}× optimal (median)",
+    f"≤{NEAR_OPTIMAL:g}× optimal",
+    "wall s/run (median)",
+)
+
+
+def table_row(maze: str, method: str, runs: Sequence[Run], n_resamples: int = 1000, seed: int = 0) -> TableRow:
+    """Compute one table row from the runs of one ``(maze, method)`` group (see :class:`TableRow`).
+
+    The first-goal CI is ``bootstrap_ci(values, n_resamples, 0.95, numpy.random.default_rng(seed))``.
+    """
+    first = [s for s in (first_goal_env_step(r) for r in runs) if s is not None]
+    if first:
+        fg_mean, fg_low, fg_high = bootstrap_ci(first, n_resamples, 0.95, np.random.default_rng(seed))
+        fg_median = float(np.median(first))
+    else:
+        fg_mean = fg_low = fg_high = fg_median = None
+    near = [s for s in (near_optimal_env_step(r) for r in runs) if s is not None]
+    walls = [float(r.summary[SK_WALL]) for r in runs if _is_number(r.summary.get(SK_WALL))]
+    return TableRow(
+        maze=maze,
+        method=method,
+        seeds=len(runs),
+        first_goal_mean=fg_mean,
+        first_goal_low=fg_low,
+        first_goal_high=fg_high,
+        first_goal_median=fg_median,
+        first_goal_reached=len(first),
+        return_early=_episode_block_mean(runs, EP_RETURN, 1, EARLY_EPISODES),
+        return_late=_episode_block_mean(runs, EP_RETURN, EARLY_EPISODES + 1, math.inf),
+        length_early=_episode_block_mean(runs, EP_LENGTH, 1, EARLY_EPISODES),
+        length_late=_episode_block_mean(runs, EP_LENGTH, EARLY_EPISODES + 1, math.inf),
+        near_optimal_median=float(np.median(near)) if near else None,
+        near_optimal_reached=len(near),
+        wall_median=float(np.median(walls)) if walls else None,
+    )
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def results_table(groups: dict[tuple[str, str], list[Run]], n_resamples: int = 1000, seed: int = 0) -> list[TableRow]:
+    """One :class:`TableRow` per ``(maze, method)`` group, in the groups' order."""
+    return [table_row(maze, method, runs, n_resamples, seed) for (maze, method), runs in groups.items()]
+
+
+def markdown_table(rows: Sequence[TableRow]) -> str:
+    """The rows as a GitHub-flavoured markdown table (header, separator, one line per row; trailing newline)."""
+
+    def line(cells: Sequence[str]) -> str:
+        return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
+
+    out = [line(TABLE_HEADER), "|" + "|".join("---" for _ in TABLE_HEADER) + "|"]
+    out += [line(r.cells()) for r in rows]
+    return "\n".join(out) + "\n"

@@ -1,0 +1,59 @@
+"""Per-run figures: the maze with visit counts and Smart Start targets, greedy paths and Q heatmaps."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from ss_drl.envs.maze import Maze
+
+
+def _base(ax, maze: Maze, values: np.ndarray, label: str, cmap: str = "viridis", log: bool = False):
+    from matplotlib.colors import LogNorm
+
+    data = np.ma.masked_where(maze.walls, values.astype(float))
+    norm = LogNorm(vmin=1, vmax=max(float(data.max() or 1), 1)) if log else None
+    image = ax.imshow(data, cmap=cmap, norm=norm, interpolation="nearest")
+    ax.imshow(np.ma.masked_where(~maze.walls, np.ones_like(values)), cmap="gray_r", vmin=0, vmax=1.5)
+    ax.plot(maze.start[1], maze.start[0], "o", color="red", markersize=7, label="S")
+    ax.plot(maze.goal[1], maze.goal[0], "*", color="lime", markersize=11, markeredgecolor="k", label="G")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.figure.colorbar(image, ax=ax, fraction=0.046, pad=0.04, label=label)
+
+
+def _save(fig: Figure, path: Path) -> Path:
+    FigureCanvasAgg(fig)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
+    return path
+
+
+def plot_visit_counts(maze: Maze, state_counts: torch.Tensor, targets: list[int], path: Path) -> Path:
+    """The maze coloured by N(s) (log scale), with every chosen S_ss marked (size ~ how often it was chosen)."""
+    fig = Figure(figsize=(6, 6 * maze.height / maze.width + 0.5))
+    ax = fig.add_subplot()
+    counts = state_counts.reshape(maze.height, maze.width).numpy()
+    _base(ax, maze, np.maximum(counts, 0), "visits N(s)", cmap="magma", log=True)
+    if targets:
+        cells, times = np.unique(np.asarray(targets), return_counts=True)
+        rows, cols = np.divmod(cells, maze.width)
+        ax.scatter(cols, rows, s=10 + 40 * times / times.max(), facecolors="none", edgecolors="cyan", label="S_ss")
+    ax.set_title(f"{maze.name}: visit counts and {len(targets)} smart start targets")
+    ax.legend(loc="upper right", fontsize=7)
+    return _save(fig, path)
+
+
+def plot_policy(maze: Maze, max_q: np.ndarray, path_cells: list[int], out: Path, title: str) -> Path:
+    """Heatmap of max_a Q(s||G, a) with the greedy path from S drawn over it."""
+    fig = Figure(figsize=(6, 6 * maze.height / maze.width + 0.5))
+    ax = fig.add_subplot()
+    _base(ax, maze, max_q.reshape(maze.height, maze.width), "max_a Q(s||G, a)")
+    rows, cols = np.divmod(np.asarray(path_cells), maze.width)
+    ax.plot(cols, rows, "-", color="white", linewidth=2)
+    ax.set_title(title)
+    ax.legend(loc="upper right", fontsize=7)
+    return _save(fig, out)

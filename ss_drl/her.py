@@ -1,0 +1,179 @@
+"""Hindsight Experience Replay on a TorchRL replay buffer, relabeling at sample time.
+
+The buffer stores transitions from N env copies collected in lock-step batches of shape (T, N). Flattened row-major
+into a TorchRL ``LazyTensorStorage`` of ``rows * N`` slots, the transition of copy ``e`` at absolute row ``t``
+(t-th env step of the run) lives in slot ``(t % rows) * N + e``: each copy owns one column, so its episodes stay
+contiguous in time even after the buffer wraps around, and another copy's data is never mixed in.
+
+Per slot the buffer keeps its episode's first and last absolute rows (the last is filled in when the episode ends;
+until then it is the newest row). Sampling is then O(batch), whatever the number of stored transitions:
+
+* ``future``: the new goal is the achieved goal (the next state) of a step t' >= t of the same episode and copy;
+* ``final``: of the episode's last stored step;
+* ``episode``: of any stored step of the same episode;
+* ``random``: of any stored transition.
+
+A fraction k / (k + 1) of each batch is relabeled. For a relabeled transition reward **and** terminated/done are
+recomputed for the new goal: one that reaches its goal is terminal, so the target never bootstraps past it.
+
+``torchrl.data.HERReplayBuffer`` (torchrl 0.13/0.14) is not used: it takes the goal from the pre-action achieved
+goal, keeps stale terminated/done flags, and rescans the whole storage after every write (see ``tests/test_her.py``).
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
+
+STRATEGIES = ("future", "final", "episode", "random")
+
+
+class HindsightReplayBuffer(TensorDictReplayBuffer):
+    """A TorchRL replay buffer of goal-conditioned maze transitions with HER relabeling at sample time.
+
+    Args:
+        capacity: transitions to keep (rounded up to a multiple of ``num_envs``).
+        num_envs: env copies whose (T, N) batches are stored.
+        batch_size: default sample size.
+        strategy: ``future``, ``final``, ``episode`` or ``random``.
+        k: relabeled goals per real one (relabel ratio k / (k + 1)); ``k = 0`` turns HER off.
+        generator: RNG for goal selection (defaults to torch's global RNG).
+
+    Stored keys: ``observation``, ``desired_goal``, ``action`` and ``next``: ``observation`` (the achieved goal),
+    ``desired_goal``, ``reward``, ``terminated``, ``truncated``, ``done``.
+    """
+
+    def __init__(
+        self,
+        capacity: int,
+        num_envs: int,
+        batch_size: int,
+        strategy: str = "future",
+        k: int = 4,
+        generator: torch.Generator | None = None,
+    ):
+        if strategy not in STRATEGIES:
+            raise ValueError(f"unknown HER strategy {strategy!r} (allowed: {', '.join(STRATEGIES)})")
+        if k < 0:
+            raise ValueError(f"HER k must be >= 0 (got {k})")
+        self.num_envs = int(num_envs)
+        self.rows = -(-int(capacity) // self.num_envs)
+        super().__init__(
+            storage=LazyTensorStorage(self.rows * self.num_envs),
+            sampler=RandomSampler(),
+            batch_size=batch_size,
+        )
+        self.strategy = strategy
+        self.k = int(k)
+        self.generator = generator
+        shape = (self.rows, self.num_envs)
+        self.ep_start = torch.zeros(shape, dtype=torch.int64)  # absolute row of the slot's episode start
+        self.ep_end = torch.full(shape, -1, dtype=torch.int64)  # absolute row of its last step; -1 while running
+        self.rows_written = 0  # absolute rows written so far
+        self.open_start = torch.zeros(self.num_envs, dtype=torch.int64)  # start row of each copy's running episode
+
+    @property
+    def relabel_ratio(self) -> float:
+        return self.k / (self.k + 1)
+
+    # --- writing -----------------------------------------------------------------------------------------------
+    def extend(self, batch: TensorDictBase, **kwargs) -> torch.Tensor:
+        """Store a (T, N) batch of consecutive steps of the N copies and update the episode bookkeeping."""
+        if batch.ndim != 2 or batch.shape[1] != self.num_envs:
+            raise ValueError(f"expected a (T, {self.num_envs}) batch, got shape {tuple(batch.shape)}")
+        n_rows = batch.shape[0]
+        if n_rows > self.rows:
+            raise ValueError(f"batch of {n_rows} rows is larger than the buffer ({self.rows} rows)")
+        done = batch.get(("next", "done")).reshape(n_rows, self.num_envs)
+        first = self.rows_written
+        abs_row = torch.arange(first, first + n_rows).unsqueeze(1).expand(n_rows, self.num_envs)
+        # Episode start: the carried-over start, or the row after each done.
+        starts = torch.full_like(abs_row, -1)
+        starts[0] = self.open_start
+        starts[1:] = torch.where(done[:-1], abs_row[1:], -1)
+        ep_start = torch.cummax(starts, dim=0).values
+        # Episode end: the next done at or after the row (reverse cumulative min), -1 if still running.
+        never = torch.iinfo(torch.int64).max
+        ends = torch.where(done, abs_row, never).flip(0)
+        ep_end = torch.cummin(ends, dim=0).values.flip(0)
+        ep_end = torch.where(ep_end == never, -1, ep_end)
+        # Close episodes that started in earlier batches and end in this one.
+        closing = done.any(dim=0) & (self.open_start < first)
+        if bool(closing.any()):
+            first_done = torch.where(closing, ep_end[0], -1)
+            span = min(int((first - self.open_start[closing]).max()), self.rows)
+            back = torch.arange(first - span, first)  # absolute rows, oldest first
+            mask = (back.unsqueeze(1) >= self.open_start.unsqueeze(0)) & closing.unsqueeze(0)
+            rows = back % self.rows
+            block = self.ep_end[rows]
+            self.ep_end[rows] = torch.where(mask, first_done.unsqueeze(0), block)
+        slot_rows = abs_row[:, 0] % self.rows
+        self.ep_start[slot_rows] = ep_start
+        self.ep_end[slot_rows] = ep_end
+        self.open_start = torch.where(done[-1], first + n_rows, ep_start[-1])
+        self.rows_written = first + n_rows
+        return super().extend(batch.reshape(-1), **kwargs)
+
+    def _absolute_row(self, row: torch.Tensor) -> torch.Tensor:
+        """Absolute row index of the data now stored at storage row ``row``."""
+        last = self.rows_written - 1
+        return last - torch.remainder(last - row, self.rows)
+
+    # --- sampling ----------------------------------------------------------------------------------------------
+    def _sample(self, batch_size: int):
+        data, info = super()._sample(batch_size)
+        n_her = round(batch_size * self.relabel_ratio)
+        if n_her == 0:
+            return data, info
+        index = torch.as_tensor(info["index"])[:n_her]
+        new_goal = self.sample_goals(index)
+        her = data[:n_her]
+        achieved = her.get(("next", "observation"))
+        reached = (achieved == new_goal).unsqueeze(-1)
+        truncated = her.get(("next", "truncated")) & ~reached
+        her.set_("desired_goal", new_goal)
+        her.set_(("next", "desired_goal"), new_goal)
+        her.set_(("next", "reward"), reached.to(her.get(("next", "reward")).dtype))
+        her.set_(("next", "terminated"), reached)
+        her.set_(("next", "truncated"), truncated)
+        her.set_(("next", "done"), reached | truncated)
+        return data, info
+
+    def sample_goals(self, index: torch.Tensor) -> torch.Tensor:
+        """New goals for the transitions in storage slots ``index`` by the buffer's strategy."""
+        row, env = index // self.num_envs, index % self.num_envs
+        t = self._absolute_row(row)
+        start = self.ep_start[row, env].clamp(min=self.rows_written - self.rows)  # oldest step still stored
+        end = self.ep_end[row, env]
+        end = torch.where(end < 0, self.rows_written - 1, end)
+        u = torch.rand(index.shape, generator=self.generator, dtype=torch.float64)
+        if self.strategy == "future":
+            source = t + (u * (end - t + 1)).long().clamp(max=end - t)
+        elif self.strategy == "final":
+            source = end
+        elif self.strategy == "episode":
+            source = start + (u * (end - start + 1)).long().clamp(max=end - start)
+        else:  # random: any stored transition, any copy
+            filled = min(self.rows_written, self.rows)
+            source = self.rows_written - 1 - (u * filled).long().clamp(max=filled - 1)
+            env = torch.randint(self.num_envs, index.shape, generator=self.generator)
+        slots = (source % self.rows) * self.num_envs + env
+        return self._storage[slots].get(("next", "observation"))
+
+    # --- persistence -------------------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        state = super().state_dict()
+        state["her"] = {
+            "ep_start": self.ep_start.clone(),
+            "ep_end": self.ep_end.clone(),
+            "rows_written": self.rows_written,
+            "open_start": self.open_start.clone(),
+        }
+        return state
+
+    def load_state_dict(self, state: dict) -> None:
+        her = state["her"]
+        super().load_state_dict({k: v for k, v in state.items() if k != "her"})
+        self.ep_start, self.ep_end = her["ep_start"].clone(), her["ep_end"].clone()
+        self.rows_written, self.open_start = her["rows_written"], her["open_start"].clone()

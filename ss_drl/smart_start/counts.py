@@ -1,0 +1,108 @@
+"""The count model: visitation counts and a learned transition model over discrete maze states.
+
+It keeps N(s) (departures from s), C(s, a), C(s, a, s') and the reward sums R(s, a), shared across env copies.
+C(s, a, s') is sparse: one entry per *observed* successor, held as a sorted key array ``key = (s * A + a) * S + s'``
+with a count per key. In a deterministic maze each (s, a) has one successor, so the model of Extreme (2457 free
+cells) or a 100x100 maze takes a few hundred KB, never a dense |S| x |S| x |A| array.
+
+The learned model is ``P(s' | s, a) = C(s, a, s') / C(s, a)`` over tried (s, a).
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+class CountModel:
+    """Visit counts and a sparse learned transition model.
+
+    Args:
+        n_states: number of discrete states (maze cells, walls included: cell index ``row * width + col``).
+        n_actions: number of actions.
+    """
+
+    def __init__(self, n_states: int, n_actions: int = 4):
+        self.n_states = int(n_states)
+        self.n_actions = int(n_actions)
+        self.state_counts = torch.zeros(self.n_states, dtype=torch.int64)  # N(s): departures from s
+        self.sa_counts = torch.zeros(self.n_states * self.n_actions, dtype=torch.int64)  # C(s, a), flat s * A + a
+        self.reward_sums = torch.zeros(self.n_states * self.n_actions, dtype=torch.float64)  # sum of r over (s, a)
+        self.keys = torch.zeros(0, dtype=torch.int64)  # sorted (s * A + a) * S + s'
+        self.sas_counts = torch.zeros(0, dtype=torch.int64)  # C(s, a, s') for each key
+
+    # --- updates -----------------------------------------------------------------------------------------------
+    def update(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor, reward: torch.Tensor):
+        """Count a batch of transitions (any shape; flattened)."""
+        s, a, s2 = state.reshape(-1), action.reshape(-1), next_state.reshape(-1)
+        if s.numel() == 0:
+            return
+        sa = s * self.n_actions + a
+        self.state_counts.index_add_(0, s, torch.ones_like(s))
+        self.sa_counts.index_add_(0, sa, torch.ones_like(sa))
+        self.reward_sums.index_add_(0, sa, reward.reshape(-1).to(torch.float64))
+        keys = sa * self.n_states + s2
+        pos = torch.searchsorted(self.keys, keys)
+        n = self.keys.numel()
+        # pos == n means "after every key": clamped, it points at a smaller key, so the comparison is False.
+        known = self.keys[pos.clamp(max=n - 1)] == keys if n else torch.zeros_like(keys, dtype=torch.bool)
+        if not bool(known.all()):
+            self._insert(torch.unique(keys[~known]))
+            pos = torch.searchsorted(self.keys, keys)
+        self.sas_counts.index_add_(0, pos, torch.ones_like(pos))
+
+    def _insert(self, new_keys: torch.Tensor) -> None:
+        keys = torch.cat((self.keys, new_keys))
+        counts = torch.cat((self.sas_counts, torch.zeros_like(new_keys)))
+        keys, order = torch.sort(keys)
+        self.keys, self.sas_counts = keys, counts[order]
+
+    # --- queries -----------------------------------------------------------------------------------------------
+    @property
+    def total_visits(self) -> int:
+        """sum_s N(s): transitions counted."""
+        return int(self.state_counts.sum())
+
+    def visited_states(self) -> torch.Tensor:
+        """States with N(s) > 0, ascending."""
+        return torch.nonzero(self.state_counts > 0).squeeze(-1)
+
+    def transitions(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The learned model as sparse entries ``(s, a, s', P(s'|s,a))`` over observed transitions."""
+        sa = self.keys // self.n_states
+        next_state = self.keys % self.n_states
+        prob = self.sas_counts.to(torch.float64) / self.sa_counts[sa].to(torch.float64)
+        return sa // self.n_actions, sa % self.n_actions, next_state, prob
+
+    def count(self, state: int, action: int | None = None, next_state: int | None = None) -> int:
+        """N(s), C(s, a) or C(s, a, s')."""
+        if action is None:
+            return int(self.state_counts[state])
+        sa = state * self.n_actions + action
+        if next_state is None:
+            return int(self.sa_counts[sa])
+        key = sa * self.n_states + next_state
+        pos = int(torch.searchsorted(self.keys, torch.tensor(key)))
+        return int(self.sas_counts[pos]) if pos < self.keys.numel() and int(self.keys[pos]) == key else 0
+
+    def nbytes(self) -> int:
+        """Memory held by the model's tensors."""
+        tensors = (self.state_counts, self.sa_counts, self.reward_sums, self.keys, self.sas_counts)
+        return sum(t.numel() * t.element_size() for t in tensors)
+
+    # --- persistence -------------------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {
+            "n_states": self.n_states,
+            "n_actions": self.n_actions,
+            "state_counts": self.state_counts.clone(),
+            "sa_counts": self.sa_counts.clone(),
+            "reward_sums": self.reward_sums.clone(),
+            "keys": self.keys.clone(),
+            "sas_counts": self.sas_counts.clone(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        if (state["n_states"], state["n_actions"]) != (self.n_states, self.n_actions):
+            raise ValueError("count model checkpoint is for a different maze")
+        for name in ("state_counts", "sa_counts", "reward_sums", "keys", "sas_counts"):
+            setattr(self, name, state[name].clone())

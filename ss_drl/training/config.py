@@ -1,0 +1,136 @@
+"""Validation of a composed config before anything is trained or written.
+
+Every problem is reported as one line naming the key, the bad value and what is allowed, as :class:`ConfigError`.
+"""
+
+from __future__ import annotations
+
+import numbers
+
+from omegaconf import DictConfig, ListConfig
+
+from ss_drl.envs.maze import PRESETS, MazeError, load_maze
+from ss_drl.her import STRATEGIES
+
+
+class ConfigError(ValueError):
+    """A config value that cannot be used. ``str(err)`` is the one-line message for the user."""
+
+
+def _get(cfg: DictConfig, key: str):
+    node = cfg
+    for part in key.split("."):
+        if not isinstance(node, DictConfig) or part not in node:
+            raise ConfigError(f"{key}: missing from the config")
+        node = node[part]
+    return node
+
+
+def _range(low, high, low_open: bool, high_open: bool) -> str:
+    if low is not None and high is not None:
+        return f"{'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
+    if low is not None:
+        return f"{'>' if low_open else '>='} {low}"
+    return f"{'<' if high_open else '<='} {high}"
+
+
+def _number(cfg, key: str, low=None, high=None, low_open=False, high_open=False, integer=False):
+    value = _get(cfg, key)
+    kind = "an integer" if integer else "a number"
+    ok_type = isinstance(value, numbers.Integral if integer else numbers.Real) and not isinstance(value, bool)
+    if not ok_type:
+        raise ConfigError(f"{key}: expected {kind}, got {value!r} ({type(value).__name__})")
+    bad_low = low is not None and (value <= low if low_open else value < low)
+    bad_high = high is not None and (value >= high if high_open else value > high)
+    if bad_low or bad_high:
+        raise ConfigError(f"{key}: {value!r} is out of range (allowed: {_range(low, high, low_open, high_open)})")
+    return value
+
+
+def _choice(cfg, key: str, allowed) -> str:
+    value = _get(cfg, key)
+    if value not in allowed:
+        raise ConfigError(f"{key}: unknown value {value!r} (allowed: {', '.join(map(str, allowed))})")
+    return value
+
+
+def _boolean(cfg, key: str) -> bool:
+    value = _get(cfg, key)
+    if not isinstance(value, bool):
+        raise ConfigError(f"{key}: expected true or false, got {value!r} ({type(value).__name__})")
+    return value
+
+
+def validate_config(cfg: DictConfig) -> None:
+    """Check every value a run uses; raise :class:`ConfigError` on the first bad one."""
+    _number(cfg, "seed", low=0, integer=True)
+    # env
+    layout = _get(cfg, "env.layout")
+    if layout in (None, ""):
+        _choice(cfg, "env.preset", PRESETS)
+        target = cfg.env.preset
+    else:
+        if not isinstance(layout, str):
+            raise ConfigError(f"env.layout: expected a path to a maze file, got {layout!r}")
+        target = layout
+    try:
+        load_maze(target)
+    except MazeError as exc:
+        key = "env.preset" if layout in (None, "") else "env.layout"
+        raise ConfigError(f"{key}: {exc}") from None
+    _number(cfg, "env.max_steps", low=1, integer=True)
+    _number(cfg, "env.num_envs", low=1, integer=True)
+    # trainer
+    _number(cfg, "trainer.total_env_steps", low=0, low_open=True, integer=True)
+    _number(cfg, "trainer.frames_per_batch", low=1, integer=True)
+    _number(cfg, "trainer.eval_interval", low=1, integer=True)
+    _number(cfg, "trainer.checkpoint_interval", low=1, integer=True)
+    _number(cfg, "trainer.torch_threads", low=1, integer=True)
+    resume = _get(cfg, "trainer.resume")
+    if not isinstance(resume, (bool, str)) and resume is not None:
+        raise ConfigError(f"trainer.resume: expected true, false or a run directory, got {resume!r}")
+    # agent
+    name = _choice(cfg, "agent.name", ("dqn", "tabular"))
+    _number(cfg, "agent.gamma", low=0, high=1, low_open=True)
+    _number(cfg, "agent.eps_start", low=0, high=1)
+    _number(cfg, "agent.eps_end", low=0, high=1)
+    _number(cfg, "agent.eps_decay_steps", low=1, integer=True)
+    if name == "tabular":
+        _number(cfg, "agent.alpha", low=0, high=1, low_open=True)
+    else:
+        _number(cfg, "agent.lr", low=0, low_open=True)
+        batch = _number(cfg, "agent.batch_size", low=1, integer=True)
+        buffer = _number(cfg, "agent.buffer_size", low=1, integer=True)
+        if batch > buffer:
+            raise ConfigError(f"agent.batch_size: {batch} is larger than agent.buffer_size ({buffer})")
+        _choice(cfg, "agent.encoder", ("embedding", "coords"))
+        _number(cfg, "agent.embed_dim", low=1, integer=True)
+        hidden = _get(cfg, "agent.hidden")
+        if not isinstance(hidden, (list, ListConfig)) or not all(
+            isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in hidden
+        ):
+            raise ConfigError(f"agent.hidden: expected a list of positive integers, got {hidden!r}")
+        _boolean(cfg, "agent.dueling")
+        _choice(cfg, "agent.loss", ("l2", "smooth_l1"))
+        _boolean(cfg, "agent.double_dqn")
+        _choice(cfg, "agent.target_update", ("hard", "soft"))
+        _number(cfg, "agent.target_update_interval", low=1, integer=True)
+        _number(cfg, "agent.tau", low=0, high=1, low_open=True)
+        _number(cfg, "agent.learning_starts", low=0, integer=True)
+        _number(cfg, "agent.train_freq", low=1, integer=True)
+        _number(cfg, "agent.gradient_steps", low=1, integer=True)
+        _number(cfg, "agent.grad_clip", low=0)
+    # HER
+    _choice(cfg, "her.strategy", STRATEGIES)
+    _number(cfg, "her.k", low=0, integer=True)
+    # Smart Start
+    _number(cfg, "smart_start.eta", low=0, high=1)
+    _number(cfg, "smart_start.c_ss", low=0)
+    _number(cfg, "smart_start.w_q", low=0)
+    _number(cfg, "smart_start.theta", low=0, integer=True)
+    _number(cfg, "smart_start.gamma", low=0, high=1, low_open=True, high_open=True)
+    _number(cfg, "smart_start.tol", low=0, low_open=True)
+    _number(cfg, "smart_start.max_sweeps", low=1, integer=True)
+    # logger
+    _choice(cfg, "logger.backend", ("csv", "wandb"))
+    _choice(cfg, "logger.mode", ("offline", "online", "disabled"))

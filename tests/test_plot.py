@@ -1,0 +1,324 @@
+"""Tests of ss_drl.analysis and scripts/plot.py on a hand-written synthetic multirun directory with known numbers."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ss_drl.analysis import aggregate as agg
+from ss_drl.analysis import (
+    aggregate_curve,
+    bootstrap_ci,
+    group_runs,
+    load_run,
+    load_runs,
+    main,
+    make_report,
+    markdown_table,
+    moving_average,
+    results_table,
+)
+from ss_drl.analysis.aggregate import AnalysisError, IncompleteRun
+from ss_drl.training.outputs import (
+    EPISODE_COLUMNS,
+    EPISODES_FILE,
+    EVAL_COLUMNS,
+    EVAL_FILE,
+    SUMMARY_FILE,
+    SUMMARY_KEYS,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+MAZE, OTHER_MAZE = "tiny", "other/maze file.txt"
+OPTIMAL = 20  # within 5%: eval_length <= 21
+
+
+def _episodes(lengths, returns):
+    rows, env_steps = [], 0
+    for i, (length, ret) in enumerate(zip(lengths, returns), start=1):
+        env_steps += length
+        row = dict.fromkeys(EPISODE_COLUMNS, 0)
+        row.update({agg.EP_EPISODE: i, agg.EP_ENV_STEPS: env_steps, agg.EP_LENGTH: length, agg.EP_RETURN: ret})
+        row[agg.EP_SUCCESS] = int(ret > 0)
+        rows.append(row)
+    return rows
+
+
+def _evals(triples):
+    rows = []
+    for k, (env_steps, length, success) in enumerate(triples, start=1):
+        row = dict.fromkeys(EVAL_COLUMNS, 0)
+        row.update({agg.EV_ENV_STEPS: env_steps, agg.EV_EPISODE: k, agg.EV_LENGTH: length, agg.EV_SUCCESS: success})
+        rows.append(row)
+    return rows
+
+
+def _write_run(d: Path, maze, method, seed, first_goal, wall, episodes, evals, completed=True, n_episodes=None):
+    d.mkdir(parents=True)
+    summary = dict.fromkeys(SUMMARY_KEYS)
+    summary.update(
+        {
+            agg.SK_MAZE: maze,
+            agg.SK_METHOD: method,
+            agg.SK_SEED: seed,
+            agg.SK_COMPLETED: completed,
+            agg.SK_FIRST_GOAL: first_goal,
+            agg.SK_EPISODES: len(episodes) if n_episodes is None else n_episodes,
+            agg.SK_OPTIMAL: OPTIMAL,
+            agg.SK_WALL: wall,
+        }
+    )
+    (d / SUMMARY_FILE).write_text(json.dumps(summary))
+    for name, columns, rows in ((EPISODES_FILE, EPISODE_COLUMNS, episodes), (EVAL_FILE, EVAL_COLUMNS, evals)):
+        with (d / name).open("w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=columns)
+            w.writeheader()
+            w.writerows(rows)
+
+
+def _build(root: Path) -> dict[str, Path]:
+    """2 methods x 3 seeds on MAZE, 1 run on OTHER_MAZE, and 4 incomplete runs; returns the incomplete dirs."""
+    a = root / "multirun" / "2026-11-22" / "10-00-00"
+    b = root / "multirun" / "2026-11-22" / "11-30-00"
+    ep = np.arange(1, 151)
+    # ss_her: returns 0 until episode 50 / 75 / never, then 1; lengths 20/30/40 for episodes 1-100, 10/12/14 after.
+    _write_run(a / "0", MAZE, "ss_her", 0, 1000, 10.0,
+               _episodes(np.where(ep <= 100, 20, 10), (ep > 50).astype(int)),
+               _evals([(500, 50, 0), (1000, 20, 0), (1500, 22, 1), (2000, 21, 1), (2500, 20, 1)]))  # fmt: skip
+    _write_run(a / "1", MAZE, "ss_her", 1, 2000, 20.0,
+               _episodes(np.where(ep <= 100, 30, 12), (ep > 75).astype(int)),
+               _evals([(500, 100, 0), (1000, 20, 1)]))  # fmt: skip
+    _write_run(a / "2", MAZE, "ss_her", 2, 6000, 60.0,
+               _episodes(np.where(ep[:120] <= 100, 40, 14), np.ones(120, int)),
+               _evals([(1000, 22, 1), (3000, 20, 1)]))  # fmt: skip
+    # dqn: 100 episodes of length 100; only seed 0 reaches G (in episode 100); no greedy eval within 5%.
+    _write_run(b / "0", MAZE, "dqn", 0, 9000, 5.0, _episodes([100] * 100, [0] * 99 + [1]),
+               _evals([(5000, 100, 0), (10000, 30, 1)]))  # fmt: skip
+    for s in (1, 2):
+        _write_run(b / str(s), MAZE, "dqn", s, None, 5.0 + s, _episodes([100] * 100, [0] * 100),
+                   _evals([(10000, 100, 0)]))  # fmt: skip
+    _write_run(b / "3", OTHER_MAZE, "dqn", 0, None, 1.0, _episodes([5] * 10, [0] * 10), _evals([(50, 5, 0)]))
+    bad = {
+        "not_completed": a / "3",
+        "missing_episodes": b / "4",
+        "truncated_line": b / "5",
+        "fewer_rows": b / "nested" / "deeper" / "6",
+    }
+    _write_run(bad["not_completed"], MAZE, "ss_her", 3, 1, 1.0, _episodes([1], [1]), _evals([]), completed=False)
+    _write_run(bad["missing_episodes"], MAZE, "dqn", 4, None, 1.0, _episodes([1], [0]), _evals([]))
+    (bad["missing_episodes"] / EPISODES_FILE).unlink()
+    _write_run(bad["truncated_line"], MAZE, "dqn", 5, None, 1.0, _episodes([1, 2], [0, 0]), _evals([]))
+    with (bad["truncated_line"] / EPISODES_FILE).open("a") as f:
+        f.write("3,0,")  # a row cut short by a killed writer
+    _write_run(bad["fewer_rows"], MAZE, "dqn", 6, None, 1.0, _episodes([1, 2], [0, 0]), _evals([]), n_episodes=5)
+    return bad
+
+
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory):
+    root = tmp_path_factory.mktemp("runs")
+    bad = _build(root)
+    return root / "multirun", bad
+
+
+@pytest.fixture(scope="module")
+def loaded(synth):
+    root, _ = synth
+    warnings = []
+    runs = load_runs([root], warn=warnings.append)
+    return runs, warnings
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# bootstrap_ci and curves
+# ---------------------------------------------------------------------------------------------------------------------
+
+
+def test_bootstrap_identical_and_single_values_collapse():
+    assert bootstrap_ci([5.0, 5.0, 5.0, 5.0], 200, rng=0) == (5.0, 5.0, 5.0)
+    assert bootstrap_ci([7.0], 200, rng=np.random.default_rng(1)) == (7.0, 7.0, 7.0)
+
+
+def test_bootstrap_matches_direct_numpy_percentile_bootstrap():
+    values = np.array([1.0, 4.0, 2.0, 8.0, 5.0])
+    mean, low, high = bootstrap_ci(values, 500, 0.9, np.random.default_rng(123))
+    rng = np.random.default_rng(123)
+    idx = rng.integers(0, len(values), size=(500, len(values)))
+    means = values[idx].mean(axis=1)
+    assert mean == 4.0
+    np.testing.assert_allclose([low, high], np.percentile(means, [5.0, 95.0]), rtol=1e-12, atol=0)
+    assert low < mean < high
+    assert bootstrap_ci(values, 500, 0.9, 123) == (mean, low, high)  # an int seed is default_rng(seed); reproducible
+    _, low50, high50 = bootstrap_ci(values, 500, 0.5, 123)
+    assert low <= low50 < high50 <= high
+
+
+def test_bootstrap_two_values_known_interval():
+    # Resample means of [0, 1] are 0, 0.5, 1 with probabilities 1/4, 1/2, 1/4: the 2.5/97.5 percentiles are 0 and 1.
+    assert bootstrap_ci([0.0, 1.0], 10_000, rng=0) == (0.5, 0.0, 1.0)
+    with pytest.raises(ValueError):
+        bootstrap_ci([], 10)
+    with pytest.raises(ValueError):
+        bootstrap_ci([1.0], 0)
+
+
+def test_moving_average_trailing_window():
+    np.testing.assert_array_equal(moving_average([1, 2, 3, 4], 2), [1.0, 1.5, 2.5, 3.5])
+    np.testing.assert_array_equal(moving_average([3, 0, 6, 3], 3), [3.0, 1.5, 3.0, 3.0])
+    np.testing.assert_array_equal(moving_average([1, 5], 1), [1.0, 5.0])
+
+
+def test_aggregate_curve_aligns_by_episode_over_seeds_that_have_it():
+    c = aggregate_curve([[1, 2, 3], [3, 4], [5]], n_resamples=300, seed=4)
+    np.testing.assert_array_equal(c.episode, [1, 2, 3])
+    np.testing.assert_array_equal(c.n_seeds, [3, 2, 1])
+    np.testing.assert_array_equal(c.mean, [3.0, 3.0, 3.0])
+    for i, values in enumerate([[1, 3, 5], [2, 4], [3]]):
+        _, low, high = bootstrap_ci(values, 300, 0.95, np.random.default_rng(4))
+        assert (c.low[i], c.high[i]) == pytest.approx((low, high), rel=1e-12)
+    assert (c.low[2], c.high[2]) == (3.0, 3.0)
+    # Smoothing per seed before aggregating: [0, 2, 4] -> [0, 1, 3] and [2, 2] -> [2, 2].
+    s = aggregate_curve([[0, 2, 4], [2, 2]], smooth=2, n_resamples=50)
+    np.testing.assert_array_equal(s.mean, [1.0, 1.5, 3.0])
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Loading and the table
+# ---------------------------------------------------------------------------------------------------------------------
+
+
+def test_incomplete_runs_are_skipped_with_one_warning_each(synth, loaded):
+    _, bad = synth
+    runs, warnings = loaded
+    assert len(runs) == 7
+    assert len(warnings) == len(bad)
+    reasons = {
+        "not_completed": "completed=false",
+        "missing_episodes": f"missing {EPISODES_FILE}",
+        "truncated_line": "line 4 has 3 fields",
+        "fewer_rows": "has 2 episodes but summary.json says episodes=5",
+    }
+    for key, d in bad.items():
+        (line,) = [w for w in warnings if str(d.resolve()) + ":" in w]
+        assert line.startswith("warning: skipping ") and reasons[key] in line and "\n" not in line
+        with pytest.raises(IncompleteRun):
+            load_run(d)
+
+
+def test_groups_by_maze_and_method(loaded):
+    groups = group_runs(loaded[0])
+    assert list(groups) == [(OTHER_MAZE, "dqn"), (MAZE, "dqn"), (MAZE, "ss_her")]
+    assert [r.seed for r in groups[(MAZE, "ss_her")]] == [0, 1, 2]
+    assert [r.n_episodes for r in groups[(MAZE, "ss_her")]] == [150, 150, 120]
+
+
+def test_results_table_values(loaded):
+    rows = {(r.maze, r.method): r for r in results_table(group_runs(loaded[0]), n_resamples=400, seed=9)}
+    ss = rows[(MAZE, "ss_her")]
+    _, low, high = bootstrap_ci([1000.0, 2000.0, 6000.0], 400, 0.95, np.random.default_rng(9))
+    assert (ss.seeds, ss.first_goal_reached, ss.first_goal_mean, ss.first_goal_median) == (3, 3, 3000.0, 2000.0)
+    assert (ss.first_goal_low, ss.first_goal_high) == (low, high)
+    assert ss.return_early == 1.75 / 3 and ss.return_late == 1.0
+    assert ss.length_early == 30.0 and ss.length_late == 12.0
+    assert (ss.near_optimal_median, ss.near_optimal_reached) == (2000.0, 3)  # first hits: 2000, 1000, 3000
+    assert ss.wall_median == 20.0
+    assert ss.cells() == [
+        MAZE, "ss_her", "3", f"3,000.0 ± {(high - low) / 2:,.1f}", "2,000.0", "3/3 seeds",
+        "0.583", "1.000", "30.0", "12.0", "2,000.0", "3/3 seeds", "20.0",
+    ]  # fmt: skip
+
+    dqn = rows[(MAZE, "dqn")]
+    assert (dqn.first_goal_mean, dqn.first_goal_low, dqn.first_goal_high) == (9000.0, 9000.0, 9000.0)
+    assert dqn.return_early == 0.01 / 3 and dqn.return_late is None and dqn.length_late is None
+    assert (dqn.near_optimal_median, dqn.near_optimal_reached) == (None, 0)
+    assert dqn.cells() == [
+        MAZE, "dqn", "3", "9,000.0 ± 0.0", "9,000.0", "1/3 seeds",
+        "0.003", "–", "100.0", "–", "never", "0/3 seeds", "6.0",
+    ]  # fmt: skip
+
+    other = rows[(OTHER_MAZE, "dqn")]
+    assert other.cells()[3:6] == ["never", "never", "0/1 seeds"]
+    assert other.cells()[10:12] == ["never", "0/1 seeds"]
+
+
+def test_markdown_table_shape(loaded):
+    rows = results_table(group_runs(loaded[0]), n_resamples=50)
+    lines = markdown_table(rows).splitlines()
+    assert len(lines) == 2 + 3
+    assert lines[0] == "| " + " | ".join(agg.TABLE_HEADER) + " |"
+    assert all(line.count(" | ") == len(agg.TABLE_HEADER) - 1 for line in lines[2:])
+    assert lines[-1].startswith(f"| {MAZE} | ss_her | 3 | 3,000.0 ± ")
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Report and command line
+# ---------------------------------------------------------------------------------------------------------------------
+
+PNGS = [
+    f"{stem}_{kind}.png"
+    for stem in ("tiny", "other_maze_file.txt")
+    for kind in ("fig5_return", "fig6_length", "first_goal")
+]
+
+
+def test_make_report_writes_pngs_and_results_md_to_default_dir(synth):
+    root, bad = synth
+    warnings = []
+    table, written = make_report([root], smooth=5, n_resamples=100, seed=2, warn=warnings.append)
+    out = root / "plots"
+    assert sorted(p.name for p in written) == sorted([*PNGS, "results.md"])
+    for name in PNGS:
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert table in (out / "results.md").read_text()
+    assert table == markdown_table(results_table(group_runs(load_runs([root], warn=lambda _: None)), 100, 2))
+    assert len(warnings) == len(bad)
+
+
+def test_cli_subprocess(synth, tmp_path):
+    root, bad = synth
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "plot.py"), str(root), "--out", str(out), "--bootstrap", "200",
+         "--seed", "3", "--smooth", "3"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    expected = markdown_table(results_table(group_runs(load_runs([root], warn=lambda _: None)), 200, 3))
+    assert proc.stdout == expected
+    assert sum(line.startswith("warning: skipping ") for line in proc.stderr.splitlines()) == len(bad)
+    assert sorted(p.name for p in out.iterdir()) == sorted([*PNGS, "results.md"])
+    assert "Traceback" not in proc.stderr
+
+
+def test_cli_nonexistent_dir_subprocess(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "plot.py"), str(tmp_path / "nope")],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode != 0
+    assert proc.stderr.splitlines() == [f"plot.py: error: not a directory: {tmp_path / 'nope'}"]
+    assert proc.stdout == ""
+
+
+def test_cli_no_complete_runs(synth, tmp_path, capsys):
+    _, bad = synth
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main([str(empty)]) == 1
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == [f"plot.py: error: no complete runs under {empty}"]
+    assert captured.out == ""
+    assert not (empty / "plots").exists()
+
+    assert main([str(bad["not_completed"])]) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 2 and err[0].startswith("warning: skipping ")
+    assert err[1].startswith("plot.py: error: no complete runs")
+    with pytest.raises(AnalysisError):
+        load_runs([bad["missing_episodes"]], warn=lambda _: None)
