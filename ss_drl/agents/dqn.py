@@ -158,6 +158,7 @@ class DQNAgent:
             "epsilon": self.epsilon,
             "optimizer": self.optimizer.state_dict(),
             "updates": self.updates,
+            "target_counter": getattr(self.target_updater, "counter", 0),
             "replay_buffer": self.replay_buffer.state_dict(),
         }
 
@@ -166,4 +167,6 @@ class DQNAgent:
         self.epsilon = state["epsilon"]
         self.optimizer.load_state_dict(state["optimizer"])
         self.updates = state["updates"]
+        if hasattr(self.target_updater, "counter"):
+            self.target_updater.counter = state["target_counter"]
         self.replay_buffer.load_state_dict(state["replay_buffer"])

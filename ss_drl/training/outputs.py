@@ -59,6 +59,7 @@ SUMMARY_KEYS = (
     "wall_s",  # run time in seconds
     "env_steps_per_s",
     "updates_per_s",
+    "smart_start_decisions",  # guided phases started (0 without Smart Start)
     "config",  # the resolved Hydra config
 )
 

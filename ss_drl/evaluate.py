@@ -1,0 +1,52 @@
+"""Load a run's checkpoint, run greedy episodes from S, print length/success, and draw the greedy path over a
+heatmap of max_a Q(s||G, a)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+from ss_drl.training.outputs import CHECKPOINT_FILE
+
+
+def load_agent(run_dir: Path):
+    """The trained agent and maze of a run directory, from its checkpoint."""
+    from ss_drl.training import checkpoint as ckpt
+    from ss_drl.training.trainer import make_agent, make_maze
+
+    state = ckpt.load(run_dir)
+    cfg = OmegaConf.create(state["config"])
+    maze = make_maze(cfg.env)
+    agent = make_agent(cfg, maze, int(cfg.seed))
+    agent.load_state_dict(state["agent"])
+    return agent, maze, cfg
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("run_dir", type=Path, help="a run directory written by scripts/train.py")
+    parser.add_argument("--episodes", type=int, default=1, help="greedy episodes (deterministic: 1 is enough)")
+    parser.add_argument("--out", type=Path, default=None, help="PNG path (default: <run dir>/greedy_policy.png)")
+    args = parser.parse_args(argv)
+    if not (args.run_dir / CHECKPOINT_FILE).is_file():
+        print(f"evaluate.py: error: no {CHECKPOINT_FILE} in {args.run_dir}", file=sys.stderr)
+        return 2
+    from ss_drl.analysis.figures import plot_policy
+    from ss_drl.training.evaluation import greedy_rollout
+
+    agent, maze, cfg = load_agent(args.run_dir)
+    optimal = maze.shortest_path_length
+    rollout = None
+    for episode in range(1, args.episodes + 1):
+        rollout = greedy_rollout(agent, maze, cfg.env.max_steps)
+        print(f"episode {episode}: length {rollout.length}, success {int(rollout.success)} (optimal {optimal})")
+    q = agent.q_values(torch.arange(maze.n_cells), torch.tensor([maze.goal_cell]))[0]
+    out = args.out or args.run_dir / "greedy_policy.png"
+    title = f"{cfg.experiment} seed {cfg.seed}: greedy length {rollout.length} (optimal {optimal})"
+    plot_policy(maze, q.amax(dim=-1).numpy(), rollout.path, out, title)
+    print(f"wrote {out}")
+    return 0

@@ -1,0 +1,146 @@
+"""End-to-end tests of scripts/train.py as a user runs it (subprocesses, tiny budgets, outputs under tmp_path)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from ss_drl.training.outputs import (
+    CHECKPOINT_FILE,
+    EPISODE_COLUMNS,
+    EPISODES_FILE,
+    EVAL_COLUMNS,
+    EVAL_FILE,
+    SUMMARY_FILE,
+    SUMMARY_KEYS,
+)
+
+pytestmark = pytest.mark.slow
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = [
+    "trainer.total_env_steps=200",
+    "agent.learning_starts=50",
+    "agent.batch_size=16",
+    "trainer.eval_interval=100",
+]
+
+
+def train(run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "scripts/train.py", *overrides, f"hydra.run.dir={run_dir}"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+def read_csv(path: Path) -> tuple[list[str], list[dict]]:
+    with path.open(newline="") as f:
+        reader = csv.DictReader(f)
+        return list(reader.fieldnames or []), list(reader)
+
+
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("smoke") / "run"
+    return run_dir, train(run_dir, "+experiment=easy_small_dqn_her", *TINY)
+
+
+@pytest.fixture(scope="module")
+def ss_run(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("ss") / "run"
+    return run_dir, train(run_dir, "+experiment=easy_small_ss_her", *TINY, "env.max_steps=40")
+
+
+# --- (a) a smoke run writes every output file ---
+def test_smoke_run_writes_outputs(smoke_run):
+    run_dir, proc = smoke_run
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    for name in (EPISODES_FILE, EVAL_FILE, SUMMARY_FILE, CHECKPOINT_FILE):
+        assert (run_dir / name).is_file(), f"{name} missing in {run_dir}"
+
+    header, rows = read_csv(run_dir / EPISODES_FILE)
+    assert header == list(EPISODE_COLUMNS)
+    for row in rows:
+        assert int(row["smart_start"]) == 0 and row["ss_target"] == ""
+        assert int(row["env_steps"]) <= 200
+
+    header, evals = read_csv(run_dir / EVAL_FILE)
+    assert header == list(EVAL_COLUMNS)
+    assert evals, "no evaluation rows"
+    assert int(evals[-1]["env_steps"]) == 200
+
+    summary = json.loads((run_dir / SUMMARY_FILE).read_text())
+    missing = [k for k in SUMMARY_KEYS if k not in summary]
+    assert not missing, f"summary.json lacks {missing}"
+    assert summary["completed"] is True
+    assert summary["env_steps"] == summary["config"]["trainer"]["total_env_steps"] == 200
+    assert summary["experiment"] == "easy_small_dqn_her"
+    assert summary["method"] == "dqn_her"
+    assert summary["episodes"] == len(rows)
+    assert summary["final_eval_length"] == int(evals[-1]["eval_length"])
+    assert not (run_dir / "smart_start.png").exists()  # Smart Start is off in dqn_her
+
+
+def test_smoke_run_prints_one_line_summary(smoke_run):
+    _, proc = smoke_run
+    last = proc.stdout.strip().splitlines()[-1]
+    assert last.startswith("easy_small_dqn_her seed 0:")
+    assert "200 env steps" in last
+
+
+# --- (b) config errors: one line naming the key, non-zero exit, nothing trained ---
+@pytest.mark.parametrize(
+    ("name", "overrides", "key"),
+    [
+        ("gamma", ["agent.gamma=1.5"], "agent.gamma"),
+        ("her_strategy", ["her.strategy=sometimes"], "her.strategy"),
+        ("maze_file", ["env.layout={bad_maze}"], "env.layout"),
+        ("batch_buffer", ["agent.batch_size=64", "agent.buffer_size=32"], "agent.batch_size"),
+    ],
+)
+def test_config_error_is_one_clean_line(tmp_path, name, overrides, key):
+    bad_maze = tmp_path / "bad_maze.txt"
+    bad_maze.write_text("S..#\n.x..\n...G\n")
+    run_dir = tmp_path / "run"
+    overrides = [o.format(bad_maze=bad_maze) for o in overrides]
+    proc = train(run_dir, "+experiment=easy_small_dqn_her", *TINY, *overrides)
+    assert proc.returncode != 0
+    assert "Traceback" not in proc.stderr, proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert key in last, last
+    assert last.startswith("ss-drl: config error:"), last
+    if name == "maze_file":
+        assert f"{bad_maze}:2:2" in last
+    for output in (EPISODES_FILE, EVAL_FILE, SUMMARY_FILE, CHECKPOINT_FILE):
+        assert not (run_dir / output).exists(), f"{output} written despite the config error"
+
+
+# --- (c) Smart Start fills the ss_* columns and draws its figure ---
+def test_smart_start_run(ss_run):
+    run_dir, proc = ss_run
+    assert proc.returncode == 0, proc.stderr
+    header, rows = read_csv(run_dir / EPISODES_FILE)
+    assert header == list(EPISODE_COLUMNS)
+    assert len(rows) >= 3, "too few episodes to see Smart Start"
+    first, *later = rows
+    assert first["smart_start"] == "0" and first["ss_target"] == "" and first["ss_steps"] == "0"
+    for row in later:
+        assert row["smart_start"] == "1", row
+        assert re.fullmatch(r"\d+:\d+", row["ss_target"]), row
+        assert int(row["ss_steps"]) <= int(row["length"])
+        assert row["ss_reached"] in ("0", "1")
+    assert (run_dir / "smart_start.png").is_file()
+    assert (run_dir / "smart_start.png").stat().st_size > 0
+    summary = json.loads((run_dir / SUMMARY_FILE).read_text())
+    assert summary["completed"] is True and summary["method"] == "ss_her"
+    assert summary["config"]["smart_start"]["eta"] == 1

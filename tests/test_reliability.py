@@ -1,0 +1,138 @@
+"""Determinism, checkpoint/resume after SIGTERM, NaN detection."""
+
+from __future__ import annotations
+
+import csv
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from ss_drl.training.outputs import CHECKPOINT_FILE, EPISODES_FILE, EVAL_FILE, SUMMARY_FILE
+from ss_drl.training.trainer import Trainer
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = [
+    "agent.learning_starts=100",
+    "agent.batch_size=32",
+    "agent.hidden=[32,32]",
+    "agent.embed_dim=8",
+    "trainer.eval_interval=250",
+]
+
+
+def compose_cfg(*overrides: str):
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return compose("config", overrides=list(overrides))
+
+
+def rows_without_wall(path: Path) -> list[list[str]]:
+    with path.open() as f:
+        rows = list(csv.reader(f))
+    if "wall_s" not in rows[0]:
+        return rows
+    i = rows[0].index("wall_s")
+    return [r[:i] + r[i + 1 :] for r in rows]
+
+
+@pytest.mark.slow
+def test_same_seed_gives_identical_outputs(tmp_path):
+    overrides = ["+experiment=easy_small_ss_her", "trainer.total_env_steps=1500", *SMALL]
+    for name in ("a", "b"):
+        Trainer(compose_cfg(*overrides), tmp_path / name).train()
+    for file in (EPISODES_FILE, EVAL_FILE):
+        a, b = rows_without_wall(tmp_path / "a" / file), rows_without_wall(tmp_path / "b" / file)
+        assert len(a) > 3
+        assert a == b
+    # ... and a different seed gives a different run
+    Trainer(compose_cfg(*overrides, "seed=1"), tmp_path / "c").train()
+    assert rows_without_wall(tmp_path / "c" / EPISODES_FILE) != rows_without_wall(tmp_path / "a" / EPISODES_FILE)
+
+
+def _train_cmd(run_dir: Path, *extra: str) -> list[str]:
+    return [
+        sys.executable,
+        str(ROOT / "scripts" / "train.py"),
+        "+experiment=easy_small_ss_her",
+        "trainer.total_env_steps=4000",
+        "trainer.checkpoint_interval=500",
+        *SMALL,
+        f"hydra.run.dir={run_dir}",
+        *extra,
+    ]
+
+
+@pytest.mark.slow
+def test_sigterm_then_resume_equals_uninterrupted_run(tmp_path):
+    full, cut = tmp_path / "full", tmp_path / "cut"
+    subprocess.run(_train_cmd(full), check=True, capture_output=True, cwd=ROOT, timeout=600)
+
+    proc = subprocess.Popen(_train_cmd(cut), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 300
+    episodes = cut / EPISODES_FILE
+    while time.time() < deadline and proc.poll() is None:
+        if episodes.exists() and sum(1 for _ in episodes.open()) > 8:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run ended before it could be interrupted"
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode != 0
+    assert "SIGTERM" in err and "resume" in err
+    assert "Traceback" not in err
+    assert (cut / CHECKPOINT_FILE).exists()
+    assert not (cut / SUMMARY_FILE).exists()
+    interrupted_at = torch.load(cut / CHECKPOINT_FILE, weights_only=False)["collector"]["env_steps"]
+    assert 0 < interrupted_at < 4000
+
+    resumed = subprocess.run(
+        _train_cmd(cut, "trainer.resume=true"), capture_output=True, text=True, cwd=ROOT, timeout=600
+    )
+    assert resumed.returncode == 0, resumed.stderr
+    for file in (EPISODES_FILE, EVAL_FILE):
+        assert rows_without_wall(cut / file) == rows_without_wall(full / file), file
+    a = json.loads((full / SUMMARY_FILE).read_text())
+    b = json.loads((cut / SUMMARY_FILE).read_text())
+    for key in ("episodes", "env_steps", "first_goal_env_step", "final_eval_length", "completed"):
+        assert a[key] == b[key]
+
+
+def test_resume_without_checkpoint_is_a_clear_error(tmp_path):
+    result = subprocess.run(
+        _train_cmd(tmp_path / "none", "trainer.resume=true"), capture_output=True, text=True, cwd=ROOT, timeout=300
+    )
+    assert result.returncode != 0
+    assert "no checkpoint" in result.stderr.strip().splitlines()[-1]
+    assert "Traceback" not in result.stderr
+
+
+def test_nan_loss_stops_the_run_and_keeps_the_last_checkpoint(tmp_path, monkeypatch):
+    cfg = compose_cfg(
+        "+experiment=easy_small_dqn_her", "trainer.total_env_steps=2000", "trainer.checkpoint_interval=400", *SMALL
+    )
+    trainer = Trainer(cfg, tmp_path)
+    network = trainer.agent.q_network
+    original = network.forward
+    calls = {"n": 0}
+
+    def poisoned(observation, desired_goal):
+        out = original(observation, desired_goal)
+        if trainer.collector.env_steps >= 900 and torch.is_grad_enabled():
+            calls["n"] += 1
+            return out * float("nan")
+        return out
+
+    monkeypatch.setattr(network, "forward", poisoned)
+    with pytest.raises(FloatingPointError, match="non-finite"):
+        trainer.train()
+    assert calls["n"] >= 1
+    state = torch.load(tmp_path / CHECKPOINT_FILE, weights_only=False)
+    assert 0 < state["collector"]["env_steps"] <= 900
+    params = state["agent"]["loss"]
+    assert all(torch.isfinite(v).all() for v in params.values() if v.is_floating_point())
