@@ -97,23 +97,21 @@ class DQNAgent:
             self.target_updater = HardUpdate(self.loss, value_network_update_interval=cfg.target_update_interval)
         else:
             self.target_updater = SoftUpdate(self.loss, tau=cfg.tau)
-        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=cfg.lr)
+        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=cfg.lr, fused=True)
         self.updates = 0
         self.last_loss = float("nan")
 
     # --- acting ------------------------------------------------------------------------------------------------
     @torch.no_grad()
-    def act(self, td: TensorDict) -> TensorDict:
-        """Writes an epsilon-greedy ``action`` into ``td`` (keys ``observation``, ``desired_goal``).
+    def act(self, observation: torch.Tensor, desired_goal: torch.Tensor) -> torch.Tensor:
+        """Epsilon-greedy actions for a batch of (state, goal) cells.
 
         The raw network is called directly: at one env copy this runs every env step, and the TensorDict module
         wrappers would cost several times the forward pass itself.
         """
-        obs = td.get("observation")
-        greedy = self.q_network(obs, td.get("desired_goal")).argmax(dim=-1)
-        explore = torch.rand(obs.shape) < self.epsilon
-        td.set("action", torch.where(explore, torch.randint(0, 4, obs.shape), greedy))
-        return td
+        greedy = self.q_network(observation, desired_goal).argmax(dim=-1)
+        explore = torch.rand(observation.shape) < self.epsilon
+        return torch.where(explore, torch.randint(0, 4, observation.shape), greedy)
 
     def set_epsilon(self, value: float) -> None:
         """Set the exploration epsilon (the trainer anneals it linearly over ``eps_decay_steps`` env steps)."""

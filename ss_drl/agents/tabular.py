@@ -42,13 +42,12 @@ class TabularQAgent:
         noise = self.rng.random(q.shape)
         return np.where(ties, noise, -1.0).argmax(axis=1)
 
-    def act(self, td: TensorDict) -> TensorDict:
-        cells = td.get("observation").numpy()
+    def act(self, observation: torch.Tensor, desired_goal: torch.Tensor) -> torch.Tensor:
+        """Epsilon-greedy actions (the goal is always G for the table)."""
+        cells = observation.numpy()
         action = self._greedy(cells)
         explore = self.rng.random(cells.shape) < self.epsilon
-        action = np.where(explore, self.rng.integers(0, 4, cells.shape), action)
-        td.set("action", torch.from_numpy(action))
-        return td
+        return torch.from_numpy(np.where(explore, self.rng.integers(0, 4, cells.shape), action))
 
     def q_values(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         """(B, n, 4): the table's Q(s, .) for the maze's goal (the only goal a tabular agent knows)."""

@@ -39,7 +39,7 @@ class MazeCollector:
 
     Args:
         env: the batched env.
-        agent: has ``act(td)`` (epsilon-greedy ``action``) and ``q_values(states, goals)``.
+        agent: has ``act(observation, desired_goal)`` (epsilon-greedy actions) and ``q_values(states, goals)``.
         counts: the count model, updated with every transition.
         smart_start: the Smart Start controller, or None.
         frames_per_batch: transitions per batch (a multiple of the number of copies).
@@ -89,8 +89,8 @@ class MazeCollector:
         ss = self.smart_start
         for t in range(t_max):
             td = self._td
-            cells = td.get("observation")
-            act = self.agent.act(td.select("observation", "desired_goal")).get("action")
+            cells, goals = td.get("observation"), td.get("desired_goal")
+            act = self.agent.act(cells, goals)
             guided = None
             if ss is not None:
                 guided = ss.active.clone()
@@ -99,7 +99,7 @@ class MazeCollector:
             out, self._td = self.env.step_and_maybe_reset(td)
             nxt = out.get("next")
             new_cells, r, done = nxt.get("observation"), nxt.get("reward"), nxt.get("done").squeeze(-1)
-            obs[t], goal[t], action[t], next_obs[t], reward[t] = cells, td.get("desired_goal"), act, new_cells, r
+            obs[t], goal[t], action[t], next_obs[t], reward[t] = cells, goals, act, new_cells, r
             terminated[t], truncated[t] = nxt.get("terminated"), nxt.get("truncated")
             self.counts.update(cells, act, new_cells, r)
             self.env_steps += n

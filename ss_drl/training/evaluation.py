@@ -16,18 +16,25 @@ class GreedyRollout:
     success: bool
 
 
-def greedy_policy(agent, maze: Maze) -> torch.Tensor:
-    """(n_cells,) greedy action of every cell towards G, from one batched evaluation of Q."""
+def greedy_policy(agent, maze: Maze, goal: int | None = None) -> torch.Tensor:
+    """(n_cells,) greedy action of every cell towards ``goal`` (default G), from one batched evaluation of Q."""
     cells = torch.arange(maze.n_cells)
-    q = agent.q_values(cells, torch.tensor([maze.goal_cell]))[0]  # (n_cells, A)
+    goal = maze.goal_cell if goal is None else goal
+    q = agent.q_values(cells, torch.tensor([goal]))[0]  # (n_cells, A)
     return q.argmax(dim=-1)
 
 
-def greedy_rollout(agent, maze: Maze, max_steps: int) -> GreedyRollout:
-    """One deterministic greedy episode from S. A revisited cell means a loop: the episode would fail."""
-    policy = greedy_policy(agent, maze).tolist()
+def greedy_rollout(
+    agent, maze: Maze, max_steps: int, start: int | None = None, goal: int | None = None
+) -> GreedyRollout:
+    """One deterministic greedy episode from ``start`` (default S) to ``goal`` (default G).
+
+    A revisited cell means a loop, so the episode would fail: it stops there.
+    """
+    goal = maze.goal_cell if goal is None else goal
+    policy = greedy_policy(agent, maze, goal).tolist()
     table = maze.transition_table()
-    cell, goal = maze.start_cell, maze.goal_cell
+    cell = maze.start_cell if start is None else start
     path, seen = [cell], {cell}
     for step in range(1, max_steps + 1):
         cell = int(table[cell, policy[cell]])
