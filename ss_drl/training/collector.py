@@ -72,12 +72,17 @@ class MazeCollector:
             obs = self._td.get("observation")
             self.smart_start.start_episodes(copies, obs, self._td.get("desired_goal"), self.agent.q_values)
 
-    def rollout(self) -> tuple[TensorDict, list[Episode]]:
-        """The next (T, N) batch of transitions and the episodes that finished in it."""
+    def rollout(self, max_frames: int | None = None) -> tuple[TensorDict, list[Episode]]:
+        """The next (T, N) batch of transitions and the episodes that finished in it.
+
+        ``max_frames`` shortens the batch (to whole env steps of all copies), so a run ends at its budget.
+        """
         if self._td is None:
             self._td = self.env.reset()
             self._begin(torch.ones(self.num_envs, dtype=torch.bool))
         t_max, n = self.steps_per_batch, self.num_envs
+        if max_frames is not None:
+            t_max = max(1, min(t_max, -(-max_frames // n)))
         obs = torch.empty(t_max, n, dtype=torch.int64)
         goal = torch.empty(t_max, n, dtype=torch.int64)
         action = torch.empty(t_max, n, dtype=torch.int64)

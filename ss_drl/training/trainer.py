@@ -116,7 +116,7 @@ class Trainer:
         handlers = self._install_signal_handlers()
         try:
             while self.collector.env_steps < total:
-                batch, finished = self.collector.rollout()
+                batch, finished = self.collector.rollout(max_frames=total - self.collector.env_steps)
                 self._set_epsilon()
                 self.agent.observe(batch, self.collector.env_steps)
                 for episode in finished:
