@@ -10,6 +10,8 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+from ss_drl.training.outputs import FAILED_FILE
+
 CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 
 
@@ -44,8 +46,8 @@ def _train(cfg: DictConfig):
         if not _is_multirun():
             raise
         # In a sweep, one failing job must not take the others down: record it and go on.
-        (run_dir / "FAILED").write_text(traceback.format_exc())
-        print(f"ss-drl: job failed, see {run_dir / 'FAILED'}", file=sys.stderr)
+        (run_dir / FAILED_FILE).write_text(traceback.format_exc())
+        print(f"ss-drl: job failed, see {run_dir / FAILED_FILE}", file=sys.stderr)
         return None
     first = summary["first_goal_env_step"]
     print(
@@ -63,7 +65,7 @@ def _fail(message: str, code: int):
     if _is_multirun():
         out = Path(HydraConfig.get().runtime.output_dir)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "FAILED").write_text(message + "\n")
+        (out / FAILED_FILE).write_text(message + "\n")
         return None
     sys.exit(code)
 

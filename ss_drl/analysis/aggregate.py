@@ -20,7 +20,19 @@ from pathlib import Path
 
 import numpy as np
 
-from ss_drl.training.outputs import EPISODE_COLUMNS, EPISODES_FILE, EVAL_COLUMNS, EVAL_FILE, SUMMARY_FILE, SUMMARY_KEYS
+from ss_drl.training.outputs import (
+    CHECKPOINT_FILE,
+    EPISODE_COLUMNS,
+    EPISODES_FILE,
+    EVAL_COLUMNS,
+    EVAL_FILE,
+    FAILED_FILE,
+    SUMMARY_FILE,
+    SUMMARY_KEYS,
+)
+
+#: Files that mark a directory as a run directory (complete or not).
+RUN_MARKERS = (SUMMARY_FILE, EPISODES_FILE, CHECKPOINT_FILE, FAILED_FILE)
 
 
 def _field(names: tuple[str, ...], name: str) -> str:
@@ -109,7 +121,8 @@ class Run:
 
 
 def find_run_dirs(roots: Iterable[str | os.PathLike]) -> list[Path]:
-    """Every directory at or below ``roots`` that holds a ``summary.json``, sorted and without duplicates.
+    """Every run directory at or below ``roots`` (holding any of ``RUN_MARKERS``: finished, running, interrupted or
+    failed), sorted and without duplicates.
 
     Raises :class:`AnalysisError` when a root is not an existing directory.
     """
@@ -120,7 +133,7 @@ def find_run_dirs(roots: Iterable[str | os.PathLike]) -> list[Path]:
             raise AnalysisError(f"not a directory: {root}")
         for dirpath, dirnames, filenames in os.walk(root):
             dirnames.sort()
-            if SUMMARY_FILE in filenames:
+            if any(marker in filenames for marker in RUN_MARKERS):
                 found.add(Path(dirpath).resolve())
     return sorted(found)
 
@@ -171,6 +184,10 @@ def load_run(path: str | os.PathLike) -> Run:
     more rows than the summary's episode count (a partially written file).
     """
     path = Path(path)
+    failed = path / FAILED_FILE
+    if failed.is_file():
+        lines = failed.read_text(errors="replace").strip().splitlines()
+        raise IncompleteRun(f"the job failed: {_one_line(lines[-1]) if lines else '(no message)'}")
     summary_path = path / SUMMARY_FILE
     try:
         summary = json.loads(summary_path.read_text())

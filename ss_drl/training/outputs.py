@@ -21,6 +21,7 @@ EPISODES_FILE = "episodes.csv"
 EVAL_FILE = "eval.csv"
 SUMMARY_FILE = "summary.json"
 CHECKPOINT_FILE = "checkpoint.pt"
+FAILED_FILE = "FAILED"  # written by a sweep job that failed (its message or traceback)
 
 EPISODE_COLUMNS = (
     "episode",  # 1-based index over all finished training episodes of the run (all env copies)
