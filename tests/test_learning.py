@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
+from helpers import compose_cfg
 
 from ss_drl.agents.dqn import DQNAgent
 from ss_drl.envs.batched import BatchedMazeEnv
@@ -18,13 +16,7 @@ from ss_drl.training.collector import MazeCollector
 from ss_drl.training.evaluation import greedy_rollout
 from ss_drl.training.trainer import Trainer
 
-ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
-
-
-def compose_cfg(*overrides: str):
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        return compose("config", overrides=list(overrides))
 
 
 def test_tabular_learns_easy_small_optimally(tmp_path):

@@ -12,12 +12,11 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
+from helpers import ROOT, compose_cfg
 
 from ss_drl.training.outputs import CHECKPOINT_FILE, EPISODES_FILE, EVAL_FILE, SUMMARY_FILE
 from ss_drl.training.trainer import Trainer
 
-ROOT = Path(__file__).resolve().parents[1]
 SMALL = [
     "agent.learning_starts=100",
     "agent.batch_size=32",
@@ -25,11 +24,6 @@ SMALL = [
     "agent.embed_dim=8",
     "trainer.eval_interval=250",
 ]
-
-
-def compose_cfg(*overrides: str):
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        return compose("config", overrides=list(overrides))
 
 
 def rows_without_wall(path: Path) -> list[list[str]]:

@@ -6,15 +6,13 @@ import json
 import subprocess
 import sys
 import warnings
-from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
+from helpers import ROOT, compose_cfg
 
 from ss_drl.training.outputs import EPISODES_FILE, SUMMARY_FILE
 from ss_drl.training.trainer import Trainer
 
-ROOT = Path(__file__).resolve().parents[1]
 TINY = [
     "trainer.total_env_steps=300",
     "agent.learning_starts=100",
@@ -67,8 +65,7 @@ def test_joblib_multirun_isolates_a_failing_job_and_plot_skips_it(tmp_path):
 
 
 def _cfg(*overrides):
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        return compose("config", overrides=["+experiment=easy_small_dqn_her", *TINY, *overrides])
+    return compose_cfg("+experiment=easy_small_dqn_her", *TINY, *overrides)
 
 
 def test_wandb_offline_needs_no_network(tmp_path, monkeypatch):

@@ -7,19 +7,13 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
+from helpers import ROOT, compose_cfg
 
 from ss_drl.training.collector import MazeCollector
 from ss_drl.training.outputs import EPISODES_FILE
 from ss_drl.training.trainer import Trainer
 
-ROOT = Path(__file__).resolve().parents[1]
 SMALL = ["agent.learning_starts=100", "agent.batch_size=32", "agent.hidden=[32,32]", "agent.embed_dim=8"]
-
-
-def compose_cfg(*overrides: str):
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        return compose("config", overrides=list(overrides))
 
 
 def episode_rows(run_dir: Path) -> list[list[str]]:

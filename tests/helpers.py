@@ -1,0 +1,15 @@
+"""Shared test helpers: the repo root and in-process Hydra composition of the project's config."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from hydra import compose, initialize_config_dir
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def compose_cfg(*overrides: str):
+    """The config ``scripts/train.py`` would run with these command-line overrides."""
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return compose("config", overrides=list(overrides))
