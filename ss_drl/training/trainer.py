@@ -16,6 +16,7 @@ import json
 import random
 import signal
 import time
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -99,6 +100,7 @@ class Trainer:
         self.next_checkpoint = cfg.trainer.checkpoint_interval
         self.wall_before = 0.0  # wall time of earlier sessions of a resumed run
         self.ss_targets: list[int] = []
+        self._recent: deque[bool] = deque(maxlen=100)  # successes of the latest episodes, for the progress bar
         self.resolved = OmegaConf.to_container(cfg, resolve=True)
         resume_rows = None
         if ckpt.should_resume(cfg, self.run_dir):
@@ -194,15 +196,8 @@ class Trainer:
             step=episode.env_steps,
         )
 
-    @property
-    def _recent(self) -> list:
-        if not hasattr(self, "_recent_list"):
-            self._recent_list = []
-        return self._recent_list
-
     def _recent_success(self) -> float:
-        recent = self._recent[-100:]
-        return sum(recent) / max(len(recent), 1)
+        return sum(self._recent) / max(len(self._recent), 1)
 
     def evaluate(self) -> tuple[int, bool]:
         rollout = greedy_rollout(self.agent, self.maze, self.cfg.env.max_steps)
@@ -291,7 +286,7 @@ class Trainer:
         self.last_eval = state["last_eval"]
         self.next_eval, self.next_checkpoint = state["next_eval"], state["next_checkpoint"]
         self.ss_targets = list(state["ss_targets"])
-        self._recent_list = list(state["recent"])
+        self._recent = deque(state["recent"], maxlen=100)
         self.wall_before = state["wall_s"]
         ckpt.set_rng_state(state["rng"])
         return tuple(state["rows"])
