@@ -13,3 +13,15 @@ def compose_cfg(*overrides: str):
     """The config ``scripts/train.py`` would run with these command-line overrides."""
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         return compose("config", overrides=list(overrides))
+
+
+#: The spec: steps on a shortest S -> G path of every shipped maze.
+SHORTEST = {
+    "easy": 31,
+    "medium": 72,
+    "hard": 138,
+    "extreme": 223,
+    "easy_small": 19,
+    "medium_small": 35,
+    "hard_small": 84,
+}

@@ -16,22 +16,13 @@ import numpy as np
 import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
+from helpers import SHORTEST
 from torchrl.envs.utils import check_env_specs
 
 import ss_drl  # noqa: F401  (registers the SSDRL/*-v0 ids)
 from ss_drl.envs import ENV_IDS, PRESETS, MazeEnv, MazeError, load_maze
 from ss_drl.envs.batched import BatchedMazeEnv
 
-#: The spec: steps on a shortest S -> G path of every shipped maze.
-SHORTEST = {
-    "easy": 31,
-    "medium": 72,
-    "hard": 138,
-    "extreme": 223,
-    "easy_small": 19,
-    "medium_small": 35,
-    "hard_small": 84,
-}
 NAMES = sorted(SHORTEST)
 ID_OF = {preset: env_id for env_id, preset in ENV_IDS.items()}
 MOVES = {0: (0, 1), 1: (1, 0), 2: (0, -1), 3: (-1, 0)}

@@ -11,21 +11,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import SHORTEST
 
 from ss_drl.envs import PRESETS, Maze, MazeError, load_maze, parse_maze, random_maze
 
 MAZE_DIR = Path(__file__).resolve().parents[1] / "ss_drl" / "mazes"
 
-#: The spec: steps on a shortest S -> G path of every shipped maze.
-SHORTEST = {
-    "easy": 31,
-    "medium": 72,
-    "hard": 138,
-    "extreme": 223,
-    "easy_small": 19,
-    "medium_small": 35,
-    "hard_small": 84,
-}
 
 #: action -> (d_row, d_col): 0 right, 1 down, 2 left, 3 up.
 MOVES = {0: (0, 1), 1: (1, 0), 2: (0, -1), 3: (-1, 0)}

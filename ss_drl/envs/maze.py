@@ -20,7 +20,6 @@ WALL, FREE, START, GOAL = "#", ".", "S", "G"
 
 #: Action ``a`` moves by ``ACTIONS[a]`` = (d_row, d_col): 0 right, 1 down, 2 left, 3 up (Keulen's order).
 ACTIONS: tuple[tuple[int, int], ...] = ((0, 1), (1, 0), (0, -1), (-1, 0))
-ACTION_NAMES = ("right", "down", "left", "up")
 
 #: Preset name -> file shipped in ``ss_drl/mazes``.
 PRESETS = ("easy", "medium", "hard", "extreme", "easy_small", "medium_small", "hard_small")

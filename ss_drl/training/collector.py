@@ -114,7 +114,6 @@ class MazeCollector:
                 ss.after_step(guided, new_cells, done)
             if bool(done.any()):
                 finished += self._finish(done, terminated[t].squeeze(-1))
-        goal_next = goal  # the desired goal is fixed within an episode
         batch = TensorDict(
             {
                 "observation": obs,
@@ -122,7 +121,7 @@ class MazeCollector:
                 "action": action,
                 "next": {
                     "observation": next_obs,
-                    "desired_goal": goal_next,
+                    "desired_goal": goal,  # fixed within an episode
                     "reward": reward,
                     "terminated": terminated,
                     "truncated": truncated,

@@ -12,7 +12,6 @@ Read top to bottom, one iteration is:
 
 from __future__ import annotations
 
-import json
 import random
 import signal
 import time
@@ -312,7 +311,3 @@ class Trainer:
 def train(cfg: DictConfig, run_dir: str | Path) -> dict:
     """Train one run; returns the summary (also written to ``run_dir/summary.json``)."""
     return Trainer(cfg, run_dir).train()
-
-
-def load_summary(run_dir: str | Path) -> dict:
-    return json.loads((Path(run_dir) / SUMMARY_FILE).read_text())
