@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import copy
+
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.data import Categorical
 from torchrl.modules import QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
+from torchrl.objectives.utils import distance_loss
 
 from ss_drl.envs.maze import Maze
 
@@ -71,11 +74,48 @@ class GoalQNetwork(nn.Module):
         return self.value(h) + adv - adv.mean(dim=-1, keepdim=True)
 
 
+class GoalDQNLoss(DQNLoss):
+    """TorchRL's ``DQNLoss`` for a :class:`GoalQNetwork`, with a lean forward.
+
+    Same parameters, target parameters, value estimator (TD(0), ``gamma``), double-DQN rule, loss function and mean
+    reduction as ``DQNLoss``, so ``HardUpdate``/``SoftUpdate``, ``state_dict`` and checkpoints are TorchRL's. Only
+    :meth:`forward` differs: ``DQNLoss.forward`` swaps functional parameters into the actor and builds tensordicts
+    for each of its three network passes, which on a CPU costs several times the passes themselves (see
+    ``tests/test_dqn.py`` for the equality with ``DQNLoss.forward``, and ``scripts/benchmark.py --section train``).
+    Here the online network is called directly (its parameters are the loss's ``value_network_params``) and the
+    target network is a copy of it whose tensors *are* ``target_value_network_params``: TorchRL's target updaters
+    write into them in place. No ``td_error`` is written (the HER buffer samples uniformly).
+    """
+
+    def __init__(self, actor: QValueActor, q_network: GoalQNetwork, **kwargs):
+        super().__init__(actor, delay_value=True, **kwargs)
+        self.__dict__["q_network"] = q_network  # not registered: its parameters are already the loss's
+        target = copy.deepcopy(actor)
+        self.target_value_network_params.to_module(target)
+        self.__dict__["target_q_network"] = target.module[0].module
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        action = tensordict.get("action").unsqueeze(-1)
+        pred = self.q_network(tensordict.get("observation"), tensordict.get("desired_goal")).gather(-1, action)
+        with torch.no_grad():
+            next_obs, next_goal = tensordict.get(("next", "observation")), tensordict.get(("next", "desired_goal"))
+            next_q = self.target_q_network(next_obs, next_goal)
+            if self.double_dqn:
+                next_value = next_q.gather(-1, self.q_network(next_obs, next_goal).argmax(-1, keepdim=True))
+            else:
+                next_value = next_q.amax(-1, keepdim=True)
+            not_terminal = (~tensordict.get(("next", "terminated"))).to(next_value.dtype)
+            gamma = self.value_estimator.gamma
+            target = tensordict.get(("next", "reward")) + gamma * not_terminal * next_value
+        loss = distance_loss(pred.squeeze(-1), target.squeeze(-1), self.loss_function).mean()
+        return TensorDict(loss=loss)
+
+
 class DQNAgent:
     """The goal-conditioned DQN learner and its epsilon-greedy collection policy.
 
-    Built from TorchRL parts: ``QValueActor`` (the greedy actor), ``DQNLoss`` (TD(0) target from a delayed target
-    network, optional double DQN) and ``HardUpdate``/``SoftUpdate``; epsilon-greedy acting is in :meth:`act`.
+    Built from TorchRL parts: ``QValueActor`` (the greedy actor), ``DQNLoss`` (:class:`GoalDQNLoss`: TD(0) target
+    from a delayed target network, optional double DQN) and ``HardUpdate``/``SoftUpdate``; epsilon-greedy acting is in :meth:`act`.
     """
 
     def __init__(self, cfg, maze: Maze, replay_buffer, seed: int = 0):
@@ -91,7 +131,7 @@ class DQNAgent:
             action_space="categorical",
         )
         self.epsilon = float(cfg.eps_start)
-        self.loss = DQNLoss(self.actor, loss_function=cfg.loss, delay_value=True, double_dqn=cfg.double_dqn)
+        self.loss = GoalDQNLoss(self.actor, self.q_network, loss_function=cfg.loss, double_dqn=cfg.double_dqn)
         self.loss.make_value_estimator(gamma=cfg.gamma)
         if cfg.target_update == "hard":
             self.target_updater = HardUpdate(self.loss, value_network_update_interval=cfg.target_update_interval)

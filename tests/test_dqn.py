@@ -1,0 +1,108 @@
+"""The goal-conditioned DQN: GoalDQNLoss equals TorchRL's DQNLoss, target updates reach the lean target network."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.objectives import DQNLoss
+
+from ss_drl.agents.dqn import DQNAgent
+from ss_drl.envs.maze import load_maze
+from ss_drl.her import HindsightReplayBuffer
+from tests.helpers import compose_cfg
+
+
+def make_agent(*overrides: str) -> DQNAgent:
+    cfg = compose_cfg("+experiment=easy_small_dqn_her", *overrides)
+    maze = load_maze("easy_small")
+    buffer = HindsightReplayBuffer(1000, 1, cfg.agent.batch_size, k=0)
+    torch.manual_seed(0)
+    return DQNAgent(cfg.agent, maze, buffer)
+
+
+def random_batch(n_cells: int, size: int = 64, seed: int = 0) -> TensorDict:
+    g = torch.Generator().manual_seed(seed)
+    terminated = torch.rand(size, 1, generator=g) < 0.3
+    return TensorDict(
+        {
+            "observation": torch.randint(n_cells, (size,), generator=g),
+            "desired_goal": torch.randint(n_cells, (size,), generator=g),
+            "action": torch.randint(4, (size,), generator=g),
+            "next": {
+                "observation": torch.randint(n_cells, (size,), generator=g),
+                "desired_goal": torch.randint(n_cells, (size,), generator=g),
+                "reward": terminated.float(),
+                "terminated": terminated,
+                "truncated": torch.zeros_like(terminated),
+                "done": terminated,
+            },
+        },
+        batch_size=(size,),
+    )
+
+
+def reference_loss(agent: DQNAgent, batch: TensorDict) -> torch.Tensor:
+    """TorchRL's own ``DQNLoss.forward`` on the agent's loss module (same parameters, same target parameters)."""
+    return DQNLoss.forward(agent.loss, batch.clone())["loss"]
+
+
+@pytest.mark.parametrize("double_dqn", [True, False])
+@pytest.mark.parametrize("loss", ["l2", "smooth_l1"])
+def test_lean_loss_equals_torchrl_dqn_loss(double_dqn, loss):
+    agent = make_agent(f"agent.double_dqn={double_dqn}", f"agent.loss={loss}")
+    # Make the target network differ from the online one, as it does between hard updates.
+    with torch.no_grad():
+        for p in agent.loss.target_value_network_params.values(True, True):
+            p.add_(0.05 * torch.randn_like(p))
+    batch = random_batch(agent.maze.n_cells)
+    ours = agent.loss(batch.clone())["loss"]
+    theirs = reference_loss(agent, batch)
+    torch.testing.assert_close(ours, theirs)
+    params = list(agent.loss.parameters())
+    grads_ours = torch.autograd.grad(ours, params, allow_unused=True)
+    grads_theirs = torch.autograd.grad(reference_loss(agent, batch), params, allow_unused=True)
+    for a, b in zip(grads_ours, grads_theirs):
+        if a is None or b is None:
+            assert a is None and b is None
+        else:
+            torch.testing.assert_close(a, b)
+
+
+def test_hard_update_reaches_the_lean_target_network():
+    agent = make_agent("agent.target_update=hard", "agent.target_update_interval=2")
+    online, target = agent.q_network, agent.loss.target_q_network
+    batch = random_batch(agent.maze.n_cells)
+    obs, goal = batch["observation"], batch["desired_goal"]
+    agent.replay_buffer.extend(batch.unsqueeze(1).expand(64, 1).clone())
+    for _ in range(2):  # online weights move; the target is still the initial copy
+        agent.update()
+        assert not torch.allclose(online(obs, goal), target(obs, goal))
+    agent.update()  # TorchRL's HardUpdate copies on the step after `interval` counted steps
+    torch.testing.assert_close(online(obs, goal), target(obs, goal))
+
+
+def test_soft_update_moves_the_lean_target_network_by_tau():
+    agent = make_agent("agent.target_update=soft", "agent.tau=0.5")
+    before = {k: v.clone() for k, v in agent.loss.target_q_network.state_dict().items()}
+    batch = random_batch(agent.maze.n_cells)
+    agent.replay_buffer.extend(batch.unsqueeze(1).expand(64, 1).clone())
+    agent.update()
+    after = agent.loss.target_q_network.state_dict()
+    online = agent.q_network.state_dict()
+    for name, old in before.items():
+        torch.testing.assert_close(after[name], 0.5 * old + 0.5 * online[name])
+
+
+def test_checkpoint_round_trip_keeps_the_target_network():
+    agent = make_agent()
+    with torch.no_grad():
+        for p in agent.loss.target_value_network_params.values(True, True):
+            p.add_(1.0)
+    state = agent.state_dict()
+    fresh = make_agent()
+    fresh.load_state_dict(state)
+    batch = random_batch(agent.maze.n_cells)
+    obs, goal = batch["observation"], batch["desired_goal"]
+    torch.testing.assert_close(fresh.loss.target_q_network(obs, goal), agent.loss.target_q_network(obs, goal))
+    torch.testing.assert_close(fresh.loss(batch.clone())["loss"], agent.loss(batch.clone())["loss"])
