@@ -115,7 +115,8 @@ class DQNAgent:
     """The goal-conditioned DQN learner and its epsilon-greedy collection policy.
 
     Built from TorchRL parts: ``QValueActor`` (the greedy actor), ``DQNLoss`` (:class:`GoalDQNLoss`: TD(0) target
-    from a delayed target network, optional double DQN) and ``HardUpdate``/``SoftUpdate``; epsilon-greedy acting is in :meth:`act`.
+    from a delayed target network, optional double DQN) and ``HardUpdate``/``SoftUpdate``; epsilon-greedy acting is
+    in :meth:`act`.
     """
 
     def __init__(self, cfg, maze: Maze, replay_buffer, seed: int = 0):
