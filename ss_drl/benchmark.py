@@ -466,6 +466,7 @@ def bench_planner(repeats: int, mazes: Sequence[str] = PLANNER_MAZES, seed: int 
 
     from ss_drl.agents.dqn import GoalQNetwork
     from ss_drl.smart_start import Planner, select_smart_start
+    from ss_drl.smart_start.selection import goal_q_values
 
     ss = OmegaConf.load(CONFIG_DIR / "smart_start" / "on.yaml")
     agent = OmegaConf.load(CONFIG_DIR / "agent" / "dqn.yaml")
@@ -477,11 +478,10 @@ def bench_planner(repeats: int, mazes: Sequence[str] = PLANNER_MAZES, seed: int 
         torch.manual_seed(seed)
         q_net = GoalQNetwork(maze, agent.encoder, agent.embed_dim, tuple(agent.hidden), agent.dueling).eval()
 
-        @torch.no_grad()
         def max_q(states, goals, q_net=q_net):
-            # As DQNAgent.q_values: every visited state for each goal in one forward pass, then max over actions.
-            n, b = states.numel(), goals.numel()
-            return q_net(states.repeat(b), goals.repeat_interleave(n)).view(b, n, 4).amax(dim=-1)
+            # Every visited state for each goal in one batched evaluation (goal_q_values: the first layer's state
+            # and goal halves computed separately), then max over actions.
+            return goal_q_values(q_net, states, goals).amax(dim=-1)
 
         planner = Planner(maze.width, gamma=ss.gamma, theta=ss.theta, tol=ss.tol, max_sweeps=ss.max_sweeps)
         goals = torch.tensor([maze.goal_cell])
@@ -530,9 +530,9 @@ def bench_planner(repeats: int, mazes: Sequence[str] = PLANNER_MAZES, seed: int 
         f"## planner: ms per Smart Start decision, fully explored count model (median of {repeats}; torch threads 1)",
         "",
         f"Selection: UCB over all visited states with a fresh `GoalQNetwork` ({agent.encoder}, "
-        f"hidden {list(agent.hidden)}), one goal. Planning: `Planner.plan` (gamma={ss.gamma}, theta={ss.theta}, "
-        f"tol={ss.tol}, max_sweeps={ss.max_sweeps}) towards the target. 'states with V>0': visited states other "
-        "than the target from which the plan has a route.",
+        f"hidden {list(agent.hidden)}) evaluated by `goal_q_values`, one goal. Planning: `Planner.plan` "
+        f"(gamma={ss.gamma}, theta={ss.theta}, tol={ss.tol}, max_sweeps={ss.max_sweeps}) towards the target. "
+        "'states with V>0': visited states other than the target from which the plan has a route.",
         "",
         markdown_table(headers, rows),
         "",

@@ -329,6 +329,91 @@ def test_stochastic_model_values_by_hand():
     assert int(plan.policy[0, 2]) == 0 and int(plan.policy[0, 1]) == 0
 
 
+def _random_model(maze, n: int, seed: int, slip: float = 0.0) -> CountModel:
+    """A partly explored model: n random (free cell, action) tries; with ``slip`` some lead to a random neighbour."""
+    table = maze.transition_table()
+    rng = np.random.default_rng(seed)
+    s = rng.choice(free_cells(maze), size=n)
+    a = rng.integers(0, 4, size=n)
+    s2 = np.where(rng.random(n) < slip, table[s, rng.integers(0, 4, size=n)], table[s, a])
+    model = CountModel(maze.n_cells, 4)
+    model.update(torch.from_numpy(s), torch.from_numpy(a), torch.from_numpy(s2), torch.zeros(n))
+    return model
+
+
+@pytest.mark.parametrize(
+    "kwargs", [{}, {"theta": 2}, {"max_sweeps": 5}, {"max_sweeps": 1}, {"max_sweeps": 0}, {"tol": 0.5}]
+)
+@pytest.mark.parametrize("explored", [0.2, 1.0])
+def test_deterministic_shortcut_equals_sweeps(kwargs, explored):
+    # On a deterministic model the planner computes the sweeps' result from breadth-first distances; it must equal
+    # the sweeps themselves bit for bit: q, V, the number of sweeps and whether they converged.
+    maze = load_maze("medium")
+    model = _random_model(maze, int(explored * 4 * maze.n_free), seed=11)
+    st = model.structure()
+    assert st.deterministic
+    planner = Planner(maze.width, gamma=GAMMA, **kwargs)
+    rng = np.random.default_rng(12)
+    visited = model.visited_states().numpy()
+    unvisited = np.setdiff1d(free_cells(maze), visited)
+    for targets in ([int(rng.choice(visited))], rng.choice(visited, 3), [int(unvisited[0]), int(visited[0])]):
+        terminal = planner.terminal_mask(model.n_states, torch.as_tensor(targets)).T
+        fast = planner._deterministic_sweeps(st, 4, terminal)
+        slow = planner._sweeps(st, model, terminal)
+        assert fast[2:] == slow[2:]
+        torch.testing.assert_close(fast[0], slow[0], rtol=0, atol=0)
+        torch.testing.assert_close(fast[1], slow[1], rtol=0, atol=0)
+
+
+def test_structure_cache_follows_new_transitions():
+    # The planner's layout is cached in the count model and rebuilt only when a new (s, a, s') key appears: a plan
+    # after more transitions (new keys, only more counts, a first stochastic outcome, a loaded checkpoint) must
+    # equal the plan of a model built from scratch on the same transitions.
+    maze = load_maze("easy")
+    table = maze.transition_table()
+    planner = Planner(maze.width, gamma=GAMMA)
+    rng = np.random.default_rng(13)
+    free = free_cells(maze)
+    model = CountModel(maze.n_cells, 4)
+    seen = []
+
+    def add(s, a, s2):
+        batch = [torch.as_tensor(x, dtype=torch.int64) for x in (s, a, s2)]
+        model.update(*batch, torch.zeros(len(s)))
+        seen.append(batch)
+
+    def check():
+        fresh = CountModel(maze.n_cells, 4)
+        for s, a, s2 in seen:
+            fresh.update(s, a, s2, torch.zeros(s.numel()))
+        target = torch.tensor([maze.goal_cell, int(model.visited_states()[0])])
+        got = planner.plan(model, target, torch.Generator().manual_seed(0))
+        want = planner.plan(fresh, target, torch.Generator().manual_seed(0))
+        assert (got.sweeps, got.converged) == (want.sweeps, want.converged)
+        for name in ("values", "q_values", "policy"):
+            torch.testing.assert_close(getattr(got, name), getattr(want, name), rtol=0, atol=0)
+        return got
+
+    for _ in range(4):  # new keys each time
+        s, a = rng.choice(free, 150), rng.integers(0, 4, 150)
+        add(s, a, table[s, a])
+        first = model.structure()
+        check()
+    assert model.structure() is first  # planning reuses the cached layout
+    add(seen[0][0][:5].numpy(), seen[0][1][:5].numpy(), seen[0][2][:5].numpy())  # known keys: counts only
+    assert model.structure() is first
+    check()
+    s, a = seen[0][0][:1].numpy(), (seen[0][1][:1].numpy() + 1) % 4
+    add(s, seen[0][1][:1].numpy(), table[s, a])  # a second outcome of a tried (s, a): now stochastic
+    assert model.structure() is not first and not model.structure().deterministic
+    plan = check()
+    restored = CountModel(maze.n_cells, 4)
+    restored.structure()
+    restored.load_state_dict(model.state_dict())
+    got = planner.plan(restored, plan.targets, torch.Generator().manual_seed(0))
+    torch.testing.assert_close(got.values, plan.values, rtol=0, atol=0)
+
+
 # --- 3. selection ----------------------------------------------------------------------------------------------------
 def _zero_q(states, goals):
     return torch.zeros(goals.numel(), states.numel())
@@ -402,6 +487,38 @@ def test_ucb_scores_formula_and_selection_agree():
 
     pick = select_smart_start(model, max_q_fn, torch.zeros(1, dtype=torch.int64), c_ss, w_q)
     assert int(pick[0]) == states[int(np.argmax(expected))]
+
+
+@pytest.mark.parametrize("encoder,dueling", [("embedding", True), ("embedding", False), ("coords", True)])
+@pytest.mark.parametrize("n_goals", [1, 3])
+def test_goal_q_values_match_the_network(encoder, dueling, n_goals, monkeypatch):
+    # goal_q_values splits the first layer into state and goal halves, folds the dueling head and works in blocks
+    # of rows: the same Q as the network's own forward pass up to float rounding, and the same smart start states.
+    from ss_drl.agents.dqn import GoalQNetwork
+    from ss_drl.smart_start.selection import goal_q_values
+
+    maze = load_maze("medium")
+    torch.manual_seed(14)
+    net = GoalQNetwork(maze, encoder, 16, (32, 24), dueling)
+    model = _random_model(maze, 600, seed=15)
+    states = model.visited_states()
+    goals = torch.from_numpy(np.random.default_rng(16).choice(free_cells(maze), n_goals))
+    monkeypatch.setattr("ss_drl.smart_start.selection.BLOCK_ROWS", 64)  # several blocks, the last one partial
+    with torch.no_grad():
+        want = net(states.repeat(n_goals), goals.repeat_interleave(states.numel())).view(n_goals, -1, 4)
+    got = goal_q_values(net, states, goals)
+    assert got.shape == want.shape and not got.requires_grad
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+
+    def plain(s, g):
+        return net(s.repeat(g.numel()), g.repeat_interleave(s.numel())).view(g.numel(), -1, 4).amax(-1).detach()
+
+    def fast(s, g):
+        return goal_q_values(net, s, g).amax(-1)
+
+    expected = select_smart_start(model, plain, goals, 0.1, 1.0, torch.Generator().manual_seed(17))
+    got = select_smart_start(model, fast, goals, 0.1, 1.0, torch.Generator().manual_seed(17))
+    torch.testing.assert_close(got, expected)
 
 
 def test_selection_needs_a_visited_state():

@@ -10,7 +10,38 @@ The learned model is ``P(s' | s, a) = C(s, a, s') / C(s, a)`` over tried (s, a).
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
+
+
+@dataclasses.dataclass
+class ModelStructure:
+    """Which transitions the model has observed, in the compact layout the planner works on.
+
+    It depends only on the set of observed keys (not on the counts), so :meth:`CountModel.structure` builds it once
+    and reuses it until a new (s, a, s') key is inserted. Visited states are numbered by their *slot*
+    ``0 .. n_v - 1``; slot ``n_v`` is a dummy standing for every unvisited state (no tried action: value 0).
+    """
+
+    keys: torch.Tensor  # the key array it was built from (the cache is valid while the model holds this very tensor)
+    states: torch.Tensor  # (n_v,) visited states (N(s) > 0), ascending
+    slot: torch.Tensor  # (S,) slot of each state; n_v for unvisited states
+    state: torch.Tensor  # per key: s
+    action: torch.Tensor  # per key: a
+    next_state: torch.Tensor  # per key: s'
+    row: torch.Tensor  # per key: slot of s
+    col: torch.Tensor  # per key: slot of s' (n_v if s' was never departed from)
+    sa: torch.Tensor  # per key: s * A + a (the model's flat (s, a) index)
+    layer: torch.Tensor  # per key: its rank among the observed successors of its (s, a)
+    n_layers: int  # most observed successors of one (s, a); 1 in a deterministic maze
+    successor: torch.Tensor  # (n_layers, A, n_v) slot of the k-th successor of (slot, a); n_v where there is none
+    derived: dict = dataclasses.field(default_factory=dict)  # users' own caches of data derived from the structure
+
+    @property
+    def deterministic(self) -> bool:
+        """Every tried (s, a) has been seen to lead to one successor only."""
+        return self.n_layers == 1
 
 
 class CountModel:
@@ -29,6 +60,7 @@ class CountModel:
         self.reward_sums = torch.zeros(self.n_states * self.n_actions, dtype=torch.float64)  # sum of r over (s, a)
         self.keys = torch.zeros(0, dtype=torch.int64)  # sorted (s * A + a) * S + s'
         self.sas_counts = torch.zeros(0, dtype=torch.int64)  # C(s, a, s') for each key
+        self._structure: ModelStructure | None = None
 
     # --- updates -----------------------------------------------------------------------------------------------
     def update(self, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor, reward: torch.Tensor):
@@ -55,6 +87,7 @@ class CountModel:
         counts = torch.cat((self.sas_counts, torch.zeros_like(new_keys)))
         keys, order = torch.sort(keys)
         self.keys, self.sas_counts = keys, counts[order]
+        self._structure = None
 
     # --- queries -----------------------------------------------------------------------------------------------
     @property
@@ -72,6 +105,28 @@ class CountModel:
         next_state = self.keys % self.n_states
         prob = self.sas_counts.to(torch.float64) / self.sa_counts[sa].to(torch.float64)
         return sa // self.n_actions, sa % self.n_actions, next_state, prob
+
+    def structure(self) -> ModelStructure:
+        """The observed transitions in the planner's layout (cached until a new key is inserted)."""
+        if self._structure is None or self._structure.keys is not self.keys:
+            self._structure = self._build_structure()
+        return self._structure
+
+    def _build_structure(self) -> ModelStructure:
+        n_s, n_a = self.n_states, self.n_actions
+        sa = self.keys // n_s
+        s, a, s2 = sa // n_a, sa % n_a, self.keys % n_s
+        states = self.visited_states()
+        n_v = states.numel()
+        slot = torch.full((n_s,), n_v, dtype=torch.int64)
+        slot[states] = torch.arange(n_v)
+        row, col = slot[s], slot[s2]
+        # Keys are sorted by (s, a, s'): a key's rank among the successors of its (s, a) is its layer.
+        layer = torch.arange(sa.numel()) - torch.searchsorted(sa, sa)
+        n_layers = int(layer.max()) + 1 if sa.numel() else 1
+        successor = torch.full((n_layers, n_a, n_v), n_v, dtype=torch.int64)
+        successor[layer, a, row] = col
+        return ModelStructure(self.keys, states, slot, s, a, s2, row, col, sa, layer, n_layers, successor)
 
     def count(self, state: int, action: int | None = None, next_state: int | None = None) -> int:
         """N(s), C(s, a) or C(s, a, s')."""
@@ -106,3 +161,4 @@ class CountModel:
             raise ValueError("count model checkpoint is for a different maze")
         for name in ("state_counts", "sa_counts", "reward_sums", "keys", "sas_counts"):
             setattr(self, name, state[name].clone())
+        self._structure = None

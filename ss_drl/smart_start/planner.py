@@ -10,15 +10,20 @@ from V = 0 until the largest change of V is below ``tol`` or after ``max_sweeps`
 terminal states, one sweep is ``Q = b + gamma * sum_k P_k * V[succ_k]`` where ``b(s,a)`` is the probability that
 (s, a) leads into the terminal set and ``succ_k``/``P_k`` hold the k-th observed successor of each (s, a) (one layer
 in a deterministic maze). Several targets (one per env copy) are planned at once as the columns of V.
+
+When every tried (s, a) has one observed successor (a deterministic maze), the sweeps' result is a function of each
+state's graph distance to the terminal set, so the planner computes it from a breadth-first search instead of
+sweeping (:meth:`Planner._deterministic_sweeps`); the result, sweep count included, is the same bit for bit.
 """
 
 from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import torch
 
-from ss_drl.smart_start.counts import CountModel
+from ss_drl.smart_start.counts import CountModel, ModelStructure
 
 
 @dataclasses.dataclass
@@ -64,34 +69,41 @@ class Planner:
     def plan(self, model: CountModel, targets: torch.Tensor | int, generator: torch.Generator | None = None) -> Plan:
         """Plan towards each of ``targets`` (a state or a (B,) tensor of states) on the model's current counts."""
         targets = torch.as_tensor(targets, dtype=torch.int64).reshape(-1)
-        n_a, n_b = model.n_actions, targets.numel()
-        s, a, s2, prob = model.transitions()
-        # Compact the problem to the states with tried actions. Every other state has all actions untried, so its
-        # value is 0 for good: it maps to one extra "dummy" slot whose value stays 0.
-        states = model.visited_states()
-        n_v = states.numel()
-        slot = torch.full((model.n_states,), n_v, dtype=torch.int64)
-        slot[states] = torch.arange(n_v)
-        row, col = slot[s], slot[s2]
-        # Entries are sorted by (s, a, s'): an entry's rank among the successors of its (s, a) picks its layer k.
-        sa = s * n_a + a
-        rank = torch.arange(sa.numel()) - torch.searchsorted(sa, sa)
-        n_k = int(rank.max()) + 1 if sa.numel() else 1
-        successor = torch.full((n_k, n_a, n_v), n_v, dtype=torch.int64)  # untried: the dummy slot, P = 0
-        gamma_prob = torch.zeros(n_k, n_a, n_v, dtype=torch.float32)
-        successor[rank, a, row] = col
-        gamma_prob[rank, a, row] = (self.gamma * prob).to(torch.float32)
+        st = model.structure()
+        # Compact the problem to the states with tried actions (the structure's slots). Every other state has all
+        # actions untried, so its value is 0 for good: it maps to one extra "dummy" slot whose value stays 0.
         terminal = self.terminal_mask(model.n_states, targets).T  # (B, S)
+        if st.deterministic:
+            q, values, sweeps, converged = self._deterministic_sweeps(st, model.n_actions, terminal)
+        else:
+            q, values, sweeps, converged = self._sweeps(st, model, terminal)
+        n_b = targets.numel()
+        # Back to full state indexing. States without tried actions: value 0, every action tied.
+        full_q = torch.zeros(model.n_states, model.n_actions, n_b, dtype=torch.float32)
+        full_q[st.states] = q.permute(2, 1, 0)  # (n_v, A, B)
+        full_v = torch.zeros(model.n_states, n_b, dtype=torch.float32)
+        full_v[st.states] = values[:, : st.states.numel()].T
+        return Plan(targets, full_v, full_q, self.greedy(full_q, generator), sweeps, converged)
+
+    def _sweeps(self, st: ModelStructure, model: CountModel, terminal: torch.Tensor):
+        """Value iteration on any learned model: synchronous sweeps until the largest change is below ``tol``.
+
+        Returns q (B, A, n_v) of the last sweep, values (B, n_v + 1) after it, the sweeps run and whether it converged.
+        """
+        n_a, n_b, n_v, n_k = model.n_actions, terminal.shape[0], st.states.numel(), st.n_layers
+        prob = model.sas_counts.to(torch.float64) / model.sa_counts[st.sa].to(torch.float64)
+        gamma_prob = torch.zeros(n_k, n_a, n_v, dtype=torch.float32)  # untried: the dummy slot, P = 0
+        gamma_prob[st.layer, st.action, st.row] = (self.gamma * prob).to(torch.float32)
         # r(s, a) = P(terminal set | s, a): reward 1 on transitions into the target (region).
         reward = torch.zeros(n_b, n_a * n_v, dtype=torch.float32)
-        reward.index_add_(1, a * n_v + row, prob.to(torch.float32) * terminal[:, s2])
+        reward.index_add_(1, st.action * n_v + st.row, prob.to(torch.float32) * terminal[:, st.next_state])
         reward = reward.view(n_b, n_a, n_v)
-        keep = (~terminal[:, states]).to(torch.float32)  # V is held at 0 on terminal states
+        keep = (~terminal[:, st.states]).to(torch.float32)  # V is held at 0 on terminal states
 
         # Values are laid out (B, n_v + 1), which makes the gather along the last dim fast. values[:, n_v] is the
         # dummy slot, always 0. Two buffers, swapped each sweep.
         values, new_values = torch.zeros(n_b, n_v + 1), torch.zeros(n_b, n_v + 1)
-        index = successor.reshape(-1)
+        index = st.successor.reshape(-1)
         q = reward
         sweeps, converged = 0, False
         while sweeps < self.max_sweeps:
@@ -107,14 +119,88 @@ class Planner:
             if delta < self.tol:
                 converged = True
                 break
-        q = q.permute(2, 1, 0)  # (n_v, A, B)
-        values = values[:, :n_v].T  # (n_v, B)
-        # Back to full state indexing. States without tried actions: value 0, every action tied.
-        full_q = torch.zeros(model.n_states, n_a, n_b, dtype=torch.float32)
-        full_q[states] = q
-        full_v = torch.zeros(model.n_states, n_b, dtype=torch.float32)
-        full_v[states] = values
-        return Plan(targets, full_v, full_q, self.greedy(full_q, generator), sweeps, converged)
+        return q, values, sweeps, converged
+
+    def _deterministic_sweeps(self, st: ModelStructure, n_a: int, terminal: torch.Tensor):
+        """What :meth:`_sweeps` computes, without sweeping, on a model where each tried (s, a) has one successor.
+
+        Reward 1 on entering the terminal set, V = 0 on it and successors that are certain make the values after
+        sweep k a function of the graph distance d(s) (fewest tried steps from s into the terminal set):
+        V_k(s) = p[d(s)] if d(s) <= k else 0, where p[1] = 1 and p[d] = gamma * p[d - 1], rounded to float32 at each
+        step exactly as the sweeps' multiply-adds round. The largest change of sweep k is thus p[k] while some state
+        lies at distance k, then 0. A breadth-first search from the terminal set, level k standing for sweep k, finds
+        the distances and where the sweeps stop; q and V are then rebuilt from the last two sweeps' values.
+        """
+        n_b, n_v = terminal.shape[0], st.states.numel()
+        into_state, preds = self._predecessors(st)
+        p, k_tol = self._powers()
+        # Sweep k changes V by p[k] >= tol while k <= depth (the deepest distance), so the sweeps stop at
+        # min(depth + 1, k_tol, max_sweeps), k_tol the first k with p[k] < tol: levels past that are never needed.
+        limit = min(k_tol, self.max_sweeps)
+        slot = st.derived["slot"]
+        levels, depth = [], 0
+        for cells in terminal.tolist() if n_b > 1 else [terminal[0]]:
+            cells = torch.nonzero(torch.as_tensor(cells)).squeeze(-1).tolist()
+            dist = [-1] * (n_v + 1)
+            dist[n_v] = 0  # the dummy slot, and the terminal slots, never get a distance
+            for c in cells:
+                if slot[c] < n_v:
+                    dist[slot[c]] = 0
+            # Level 1: non-terminal slots with a tried action into the terminal set.
+            front = []
+            for c in cells if limit > 0 else ():
+                for y in into_state.get(c, ()):
+                    if dist[y] < 0:
+                        dist[y] = 1
+                        front.append(y)
+            depth = max(depth, _bfs(front, dist, preds, limit))
+            levels.append(np.fromiter(dist, np.int64, n_v + 1))
+        sweeps = min(depth + 1, k_tol, self.max_sweeps)
+        converged = min(depth + 1, k_tol) <= self.max_sweeps
+        d = torch.from_numpy(np.stack(levels)).clamp_(min=0)  # (B, n_v + 1), 0 for "no distance"
+        table = torch.tensor([0.0, *p[1 : sweeps + 1]], dtype=torch.float32)  # table[d] = p[d], table[0] = 0
+        values = table.take(d)
+        # q of the last sweep bootstraps from the values of the one before: distances < sweeps.
+        before = values.masked_fill(d == sweeps, 0.0)
+        reward = torch.zeros(n_b, n_a * n_v, dtype=torch.float32)
+        reward.index_copy_(1, st.derived["reward_index"], terminal.index_select(1, st.next_state).to(torch.float32))
+        bootstrap = before.index_select(1, st.derived["successor"])
+        q = reward.add_(bootstrap, alpha=float(np.float32(self.gamma)))
+        return q.view(n_b, n_a, n_v), values, sweeps, converged
+
+    def _powers(self) -> tuple[list[float], int]:
+        """p[k] for k = 1 .. max_sweeps (p[0] = 0 unused), p[1] = 1, p[k] = float32(gamma) * p[k - 1] in float32;
+        and k_tol, the first k with p[k] < tol (max_sweeps + 1 if none)."""
+        key = (self.gamma, self.max_sweeps, self.tol)
+        if getattr(self, "_powers_key", None) != key:
+            g = np.float32(self.gamma)
+            p, x = [0.0], np.float32(1.0)
+            for _ in range(self.max_sweeps):
+                p.append(float(x))
+                x = np.float32(g * x)
+            k_tol = next((k for k in range(1, len(p)) if p[k] < self.tol), len(p))
+            self._powers_key, self._powers_cache = key, (p, k_tol)
+        return self._powers_cache
+
+    @staticmethod
+    def _predecessors(st: ModelStructure) -> tuple[dict[int, tuple[int, ...]], list[tuple[int, ...]]]:
+        """Predecessor lists for the breadth-first search, cached with the structure: the slots with a tried action
+        into each state (a dict by state) and into each slot (a list by slot; the dummy slot has none)."""
+        if "predecessors" not in st.derived:
+            n_v = st.states.numel()
+            edge = st.next_state != st.state
+            pairs = torch.unique(torch.stack((st.next_state[edge], st.row[edge]), dim=1), dim=0)  # by next state
+            targets, sources = pairs[:, 0].tolist(), pairs[:, 1].tolist()
+            into_state: dict[int, list[int]] = {}
+            for t, s in zip(targets, sources):
+                into_state.setdefault(t, []).append(s)
+            into_state = {t: tuple(s) for t, s in into_state.items()}
+            preds = [into_state.get(s, ()) for s in st.states.tolist()] + [()]
+            st.derived["predecessors"] = (into_state, preds)
+            st.derived["slot"] = st.slot.tolist()
+            st.derived["reward_index"] = st.action * n_v + st.row
+            st.derived["successor"] = st.successor.reshape(-1)
+        return st.derived["predecessors"]
 
     @staticmethod
     def greedy(q: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
@@ -122,3 +208,24 @@ class Planner:
         best = q.amax(dim=1, keepdim=True)
         noise = torch.rand(q.shape, generator=generator, dtype=q.dtype)
         return torch.where(q >= best, noise, -1.0).argmax(dim=1).T.contiguous()
+
+
+def _bfs(front: list[int], dist: list[int], preds: list[tuple[int, ...]], limit: int) -> int:
+    """Breadth-first search backwards from level 1 (``front``) up to level ``limit``, writing the levels into
+    ``dist`` (-1: not reached; entries >= 0 are never changed). Returns the deepest level reached (0: none)."""
+    if not front or limit < 1:
+        return 0
+    for x in front:
+        dist[x] = 1
+    level = 1
+    while level < limit:
+        nxt = []
+        for x in front:
+            for y in preds[x]:
+                if dist[y] < 0:
+                    dist[y] = level + 1
+                    nxt.append(y)
+        if not nxt:
+            break
+        front, level = nxt, level + 1
+    return level
