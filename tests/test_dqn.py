@@ -106,3 +106,29 @@ def test_checkpoint_round_trip_keeps_the_target_network():
     obs, goal = batch["observation"], batch["desired_goal"]
     torch.testing.assert_close(fresh.loss.target_q_network(obs, goal), agent.loss.target_q_network(obs, goal))
     torch.testing.assert_close(fresh.loss(batch.clone())["loss"], agent.loss(batch.clone())["loss"])
+
+
+@pytest.mark.parametrize("step_cost", [0.5, 1.0])
+def test_env_scale_maps_step_cost_values_to_the_env_reward_scale(step_cost):
+    """An episode entering G on step d is worth gamma^(d-1) with the env's reward; the map recovers that exactly."""
+    agent = make_agent(f"agent.step_cost={step_cost}", "agent.gamma=0.9")
+    gamma, c = 0.9, step_cost
+    d = torch.arange(1, 40, dtype=torch.float64)
+    learner = gamma ** (d - 1) - c * (1 - gamma**d) / (1 - gamma)  # r - c on every step, r = 1 on the last
+    torch.testing.assert_close(agent.env_scale(learner), gamma ** (d - 1))
+    never = torch.tensor([-c / (1 - gamma)], dtype=torch.float64)  # never reaches the goal: 0
+    torch.testing.assert_close(agent.env_scale(never), torch.zeros(1, dtype=torch.float64))
+
+
+def test_step_cost_is_subtracted_from_the_reward_the_loss_sees():
+    plain, costly = make_agent("agent.step_cost=0"), make_agent("agent.step_cost=1")
+    costly.q_network.load_state_dict(plain.q_network.state_dict())
+    costly.loss.target_q_network.load_state_dict(plain.loss.target_q_network.state_dict())
+    batch = random_batch(plain.maze.n_cells)
+    shifted = batch.clone()
+    shifted.set(("next", "reward"), batch.get(("next", "reward")) - 1)
+    seen = []
+    costly.loss.forward = lambda td: seen.append(td.get(("next", "reward")).clone()) or plain.loss(td)
+    costly.replay_buffer.sample = lambda: batch.clone()
+    costly.update()
+    torch.testing.assert_close(seen[0], shifted.get(("next", "reward")))

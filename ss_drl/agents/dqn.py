@@ -14,6 +14,7 @@ from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 from torchrl.objectives.utils import distance_loss
 
 from ss_drl.envs.maze import Maze
+from ss_drl.smart_start.selection import goal_q_values
 
 
 class CellEncoder(nn.Module):
@@ -132,6 +133,8 @@ class DQNAgent:
             action_space="categorical",
         )
         self.epsilon = float(cfg.eps_start)
+        # The learner's reward is the env's minus this cost: 1 gives -1 per step and 0 on entering the goal.
+        self.step_cost = float(cfg.get("step_cost", 0.0))
         self.loss = GoalDQNLoss(self.actor, self.q_network, loss_function=cfg.loss, double_dqn=cfg.double_dqn)
         self.loss.make_value_estimator(gamma=cfg.gamma)
         if cfg.target_update == "hard":
@@ -160,10 +163,22 @@ class DQNAgent:
 
     @torch.no_grad()
     def q_values(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
-        """(B, n, 4): Q(s||g, .) of every state in ``states`` (n,) for each goal in ``goals`` (B,), one forward pass."""
-        n, b = states.numel(), goals.numel()
-        q = self.q_network(states.repeat(b), goals.repeat_interleave(n))
-        return q.view(b, n, 4)
+        """(B, n, 4): Q(s||g, .) on the env's reward scale of every state in ``states`` (n,) for each goal in
+        ``goals`` (B,), in one batched pass (:func:`~ss_drl.smart_start.selection.goal_q_values`)."""
+        return self.env_scale(goal_q_values(self.q_network, states, goals))
+
+    def env_scale(self, q: torch.Tensor) -> torch.Tensor:
+        """Map the learner's values (reward ``r - step_cost``) to the env's 0/1 reward scale.
+
+        An episode that enters the goal on its d-th step is worth ``gamma^(d-1)`` with the env's reward and
+        ``Q' = gamma^(d-1) (1 + c gamma / (1 - gamma)) - c / (1 - gamma)`` with the step cost c (an endless one:
+        0 and ``-c / (1 - gamma)``). The map is affine, so it holds in expectation for any policy, keeps the greedy
+        action, and gives Smart Start's UCB the scale of the paper's ``max_a Q`` whatever the step cost.
+        """
+        c, gamma = self.step_cost, float(self.cfg.gamma)
+        if c == 0:
+            return q
+        return ((1 - gamma) * q + c) / ((1 - gamma) + c * gamma)
 
     # --- learning ----------------------------------------------------------------------------------------------
     def observe(self, batch: TensorDict, env_steps: int) -> None:
@@ -177,6 +192,9 @@ class DQNAgent:
 
     def update(self) -> float:
         sample = self.replay_buffer.sample()
+        if self.step_cost:
+            reward = sample.get(("next", "reward"))
+            sample.set(("next", "reward"), reward - self.step_cost)
         loss = self.loss(sample)["loss"]
         if not torch.isfinite(loss):
             raise FloatingPointError(f"non-finite DQN loss ({float(loss)}) at update {self.updates}")
