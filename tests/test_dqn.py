@@ -132,3 +132,25 @@ def test_step_cost_is_subtracted_from_the_reward_the_loss_sees():
     costly.replay_buffer.sample = lambda: batch.clone()
     costly.update()
     torch.testing.assert_close(seen[0], shifted.get(("next", "reward")))
+
+
+def test_advantage_learning_target_by_hand():
+    alpha = 0.75
+    agent = make_agent(f"agent.advantage_learning={alpha}", "agent.double_dqn=false", "agent.loss=l2")
+    with torch.no_grad():
+        for p in agent.loss.target_value_network_params.values(True, True):
+            p.add_(0.05 * torch.randn_like(p))
+    batch = random_batch(agent.maze.n_cells)
+    online, target, gamma = agent.q_network, agent.loss.target_q_network, agent.cfg.gamma
+    with torch.no_grad():
+        obs, goal, action = batch["observation"], batch["desired_goal"], batch["action"]
+        q_t = target(obs, goal)
+        gap = q_t.max(-1).values - q_t[torch.arange(64), action]
+        nxt = batch["next"]
+        bootstrap = target(nxt["observation"], nxt["desired_goal"]).max(-1).values
+        y = nxt["reward"].squeeze(-1) + gamma * (~nxt["terminated"].squeeze(-1)) * bootstrap - alpha * gap
+        expected = ((online(obs, goal)[torch.arange(64), action] - y) ** 2).mean()
+    torch.testing.assert_close(agent.loss(batch.clone())["loss"], expected)
+    # alpha = 0 is TorchRL's DQNLoss again
+    agent.loss.advantage_learning = 0.0
+    torch.testing.assert_close(agent.loss(batch.clone())["loss"], reference_loss(agent, batch))

@@ -86,10 +86,15 @@ class GoalDQNLoss(DQNLoss):
     Here the online network is called directly (its parameters are the loss's ``value_network_params``) and the
     target network is a copy of it whose tensors *are* ``target_value_network_params``: TorchRL's target updaters
     write into them in place. No ``td_error`` is written (the HER buffer samples uniformly).
+
+    ``advantage_learning = alpha > 0`` adds the advantage-learning term to the target (``alpha = 0``: DQNLoss).
+    With 0/1 rewards and gamma < 1 the values of neighbouring actions differ by ~(1 - gamma) gamma^d, a few
+    thousandths far from the goal, less than the network's error; the term multiplies those gaps by 1 / (1 - alpha).
     """
 
-    def __init__(self, actor: QValueActor, q_network: GoalQNetwork, **kwargs):
+    def __init__(self, actor: QValueActor, q_network: GoalQNetwork, advantage_learning: float = 0.0, **kwargs):
         super().__init__(actor, delay_value=True, **kwargs)
+        self.advantage_learning = float(advantage_learning)
         self.__dict__["q_network"] = q_network  # not registered: its parameters are already the loss's
         target = copy.deepcopy(actor)
         self.target_value_network_params.to_module(target)
@@ -108,6 +113,12 @@ class GoalDQNLoss(DQNLoss):
             not_terminal = (~tensordict.get(("next", "terminated"))).to(next_value.dtype)
             gamma = self.value_estimator.gamma
             target = tensordict.get(("next", "reward")) + gamma * not_terminal * next_value
+            if self.advantage_learning:
+                # Advantage learning (Bellemare et al., 2016): the taken action's target drops by alpha times its
+                # gap to the best action, which widens every action gap by 1 / (1 - alpha) at the fixed point and
+                # leaves the greedy action's value as it is.
+                q_now = self.target_q_network(tensordict.get("observation"), tensordict.get("desired_goal"))
+                target = target - self.advantage_learning * (q_now.amax(-1, keepdim=True) - q_now.gather(-1, action))
         loss = distance_loss(pred.squeeze(-1), target.squeeze(-1), self.loss_function).mean()
         return TensorDict(loss=loss)
 
@@ -135,7 +146,13 @@ class DQNAgent:
         self.epsilon = float(cfg.eps_start)
         # The learner's reward is the env's minus this cost: 1 gives -1 per step and 0 on entering the goal.
         self.step_cost = float(cfg.get("step_cost", 0.0))
-        self.loss = GoalDQNLoss(self.actor, self.q_network, loss_function=cfg.loss, double_dqn=cfg.double_dqn)
+        self.loss = GoalDQNLoss(
+            self.actor,
+            self.q_network,
+            advantage_learning=cfg.get("advantage_learning", 0.0),
+            loss_function=cfg.loss,
+            double_dqn=cfg.double_dqn,
+        )
         self.loss.make_value_estimator(gamma=cfg.gamma)
         if cfg.target_update == "hard":
             self.target_updater = HardUpdate(self.loss, value_network_update_interval=cfg.target_update_interval)

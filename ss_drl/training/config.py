@@ -121,6 +121,7 @@ def validate_config(cfg: DictConfig) -> None:
         _number(cfg, "agent.gradient_steps", low=1, integer=True)
         _number(cfg, "agent.grad_clip", low=0)
         _number(cfg, "agent.step_cost", low=0)
+        _number(cfg, "agent.advantage_learning", low=0, high=1, high_open=True)
     # HER
     _choice(cfg, "her.strategy", STRATEGIES)
     _number(cfg, "her.k", low=0, integer=True)
