@@ -665,3 +665,33 @@ def test_guided_phase_with_theta_stops_within_theta():
     region = free_cells(maze)[(np.abs(rows - 1) + np.abs(cols - 1)) <= theta]
     d = min(int(bfs_to(maze, int(x))[maze.start_cell]) for x in region)
     assert ss.steps.tolist() == [d] and ss.planned_steps.tolist() == [d]
+
+
+def test_guided_epsilon_deviates_at_its_rate_and_still_reaches_smart_start():
+    maze = load_maze("easy_small")
+    table = torch.from_numpy(maze.transition_table())
+    target = maze.cell((1, 1))
+    n = 400
+    planner = Planner(maze.width, gamma=GAMMA)
+    ss = SmartStart(
+        maze, _model_with_least_visited(maze, target), n, eta=1.0, c_ss=2.0, w_q=1.0, theta=0, planner=planner,
+        generator=torch.Generator().manual_seed(5), guided_epsilon=0.4,
+    )  # fmt: skip
+    starts = torch.full((n,), maze.start_cell)
+    ss.end_episodes(torch.ones(n, dtype=torch.bool))
+    ss.start_episodes(torch.ones(n, dtype=torch.bool), starts, torch.full((n,), maze.goal_cell), _zero_q_values)
+    cells, off_route, guided = starts.clone(), 0, 0
+    for _ in range(500):
+        was_active = ss.active.clone()
+        if not was_active.any():
+            break
+        act = ss.guide(cells, torch.zeros(n, dtype=torch.int64))
+        planned = ss.route.gather(1, cells.unsqueeze(1)).squeeze(1)
+        off_route += int((was_active & (act != planned)).sum())
+        guided += int(was_active.sum())
+        cells = torch.where(was_active, table[cells, act], cells)
+        ss.after_step(was_active, cells, torch.zeros(n, dtype=torch.bool))
+    # A random action is the planned one a quarter of the time: 0.4 * 3/4 = 0.3 of the guided steps leave the route.
+    assert 0.27 < off_route / guided < 0.33
+    assert ss.reached.all() and (cells == target).all()  # the route is taken up again after every deviation
+    assert (ss.steps >= ss.planned_steps).all() and (ss.steps > ss.planned_steps).float().mean() > 0.9

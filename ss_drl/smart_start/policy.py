@@ -31,6 +31,7 @@ class SmartStart:
         planner: the value-iteration planner.
         generator: RNG for the eta draws and the tie-breaks (separate from the training RNG, so that eta = 0
             reproduces a run without Smart Start exactly).
+        guided_epsilon: probability of a random action at each guided step (0: the route is followed exactly).
     """
 
     def __init__(
@@ -44,9 +45,11 @@ class SmartStart:
         theta: int,
         planner: Planner,
         generator: torch.Generator,
+        guided_epsilon: float = 0.0,
     ):
         self.maze, self.counts, self.planner, self.generator = maze, counts, planner, generator
         self.eta, self.c_ss, self.w_q, self.theta = float(eta), float(c_ss), float(w_q), int(theta)
+        self.guided_epsilon = float(guided_epsilon)
         n = int(num_envs)
         self.episodes = torch.zeros(n, dtype=torch.int64)  # finished episodes per copy
         self.active = torch.zeros(n, dtype=torch.bool)  # in the guided phase now
@@ -105,10 +108,18 @@ class SmartStart:
         self.reached[chosen] = there
 
     def guide(self, cells: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """The planner's action for copies in the guided phase, ``action`` for the others."""
+        """The planner's action for copies in the guided phase, ``action`` for the others.
+
+        With ``guided_epsilon > 0`` a guided step is a uniformly random action with that probability (the route
+        is then taken up again from wherever the agent is: the plan covers every visited state).
+        """
         if not bool(self.active.any()):
             return action
         planned = self.route.gather(1, cells.unsqueeze(1)).squeeze(1)
+        if self.guided_epsilon > 0:
+            explore = torch.rand(cells.shape, generator=self.generator) < self.guided_epsilon
+            random = torch.randint(0, 4, cells.shape, generator=self.generator)
+            planned = torch.where(explore, random, planned)
         return torch.where(self.active, planned, action)
 
     def after_step(self, was_active: torch.Tensor, next_cells: torch.Tensor, done: torch.Tensor) -> None:

@@ -127,6 +127,7 @@ def validate_config(cfg: DictConfig) -> None:
     _number(cfg, "her.k", low=0, integer=True)
     # Smart Start
     _number(cfg, "smart_start.eta", low=0, high=1)
+    _number(cfg, "smart_start.guided_epsilon", low=0, high=1)
     _number(cfg, "smart_start.c_ss", low=0)
     _number(cfg, "smart_start.w_q", low=0)
     _number(cfg, "smart_start.theta", low=0, integer=True)

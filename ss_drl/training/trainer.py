@@ -71,7 +71,9 @@ def make_smart_start(cfg: DictConfig, maze: Maze, counts: CountModel, seed: int)
         return None
     planner = Planner(maze.width, gamma=ss.gamma, theta=ss.theta, tol=ss.tol, max_sweeps=ss.max_sweeps)
     generator = torch.Generator().manual_seed(seed + 1_000_003)
-    return SmartStart(maze, counts, cfg.env.num_envs, ss.eta, ss.c_ss, ss.w_q, ss.theta, planner, generator)
+    return SmartStart(
+        maze, counts, cfg.env.num_envs, ss.eta, ss.c_ss, ss.w_q, ss.theta, planner, generator, ss.guided_epsilon
+    )
 
 
 class Trainer:
