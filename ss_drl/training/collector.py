@@ -3,7 +3,7 @@
 ``MazeCollector.rollout()`` returns the next ``frames_per_batch`` transitions as a (T, N) tensordict, like a TorchRL
 collector, and keeps per-episode statistics. It is a plain loop rather than ``torchrl.collectors.Collector`` because
 Smart Start decides per copy at each episode start (selection and planning need the count model and the online
-network of that moment), and because at one env copy the loop's per-step cost is what bounds training speed.
+network of that moment; the count model is brought up to date before each episode start), and because at one env copy the loop's per-step cost is what bounds training speed.
 """
 
 from __future__ import annotations
@@ -92,6 +92,16 @@ class MazeCollector:
         truncated = torch.empty(t_max, n, 1, dtype=torch.bool)
         finished: list[Episode] = []
         ss = self.smart_start
+        counted = 0  # steps of this batch already in the count model
+
+        def count_until(stop: int) -> None:
+            # The count model is updated in blocks of steps; Smart Start only reads it at episode starts, so the
+            # steps are counted before every episode start and at the end of the batch.
+            nonlocal counted
+            if stop > counted:
+                self.counts.update(obs[counted:stop], action[counted:stop], next_obs[counted:stop], reward[counted:stop])
+                counted = stop
+
         for t in range(t_max):
             td = self._td
             cells, goals = td.get("observation"), td.get("desired_goal")
@@ -106,14 +116,15 @@ class MazeCollector:
             new_cells, r, done = nxt.get("observation"), nxt.get("reward"), nxt.get("done").squeeze(-1)
             obs[t], goal[t], action[t], next_obs[t], reward[t] = cells, goals, act, new_cells, r
             terminated[t], truncated[t] = nxt.get("terminated"), nxt.get("truncated")
-            self.counts.update(cells, act, new_cells, r)
             self.env_steps += n
             self.ep_length += 1
             self.ep_return += r.squeeze(-1)
             if ss is not None:
                 ss.after_step(guided, new_cells, done)
             if bool(done.any()):
+                count_until(t + 1)
                 finished += self._finish(done, terminated[t].squeeze(-1))
+        count_until(t_max)
         batch = TensorDict(
             {
                 "observation": obs,
