@@ -3,7 +3,8 @@
 ``MazeCollector.rollout()`` returns the next ``frames_per_batch`` transitions as a (T, N) tensordict, like a TorchRL
 collector, and keeps per-episode statistics. It is a plain loop rather than ``torchrl.collectors.Collector`` because
 Smart Start decides per copy at each episode start (selection and planning need the count model and the online
-network of that moment; the count model is brought up to date before each episode start), and because at one env copy the loop's per-step cost is what bounds training speed.
+network of that moment; the count model is brought up to date before each episode start), and because at one env
+copy the loop's per-step cost is what bounds training speed.
 """
 
 from __future__ import annotations
@@ -99,7 +100,8 @@ class MazeCollector:
             # steps are counted before every episode start and at the end of the batch.
             nonlocal counted
             if stop > counted:
-                self.counts.update(obs[counted:stop], action[counted:stop], next_obs[counted:stop], reward[counted:stop])
+                block = slice(counted, stop)
+                self.counts.update(obs[block], action[block], next_obs[block], reward[block])
                 counted = stop
 
         for t in range(t_max):
