@@ -37,13 +37,26 @@ def test_tabular_learns_easy_small_optimally(tmp_path):
 
 
 def test_dqn_her_learns_easy_small_optimally(tmp_path):
-    cfg = compose_cfg("+experiment=easy_small_dqn_her", "seed=1", "trainer.total_env_steps=12000")
+    cfg = compose_cfg("+experiment=easy_small_dqn_her", "seed=1", "agent.train_freq=4", "trainer.total_env_steps=12000")
     summary = Trainer(cfg, tmp_path).train()
     assert summary["first_goal_env_step"] is not None
     lengths = np.loadtxt(tmp_path / "eval.csv", delimiter=",", skiprows=1, usecols=2)
     assert lengths[0] == 1000  # the untrained greedy policy does not reach G ...
     assert lengths.min() == 19  # ... the trained one takes the shortest path
     assert summary["final_eval_length"] <= 21
+
+
+def test_ss_her_learns_easy_small_optimally(tmp_path):
+    # The paper's SS+HER setup as the experiment configures it (eta 1, S_ss by visit counts, one update per env step,
+    # random actions on 10% of the guided steps): the greedy path from S becomes the shortest one.
+    cfg = compose_cfg("+experiment=easy_small_ss_her", "trainer.total_env_steps=8000")
+    summary = Trainer(cfg, tmp_path).train()
+    # Every episode start but the first is guided: the finished episodes but the first, plus the unfinished last one.
+    assert summary["smart_start_decisions"] == summary["episodes"] > 0
+    lengths = np.loadtxt(tmp_path / "eval.csv", delimiter=",", skiprows=1, usecols=2)
+    assert lengths[0] == 1000
+    assert lengths.min() == 19
+    assert summary["final_eval_length"] == summary["optimal_length"] == 19
 
 
 def _offline_goal_reaching(k: int) -> float:
