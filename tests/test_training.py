@@ -33,10 +33,11 @@ def test_eta_zero_reproduces_the_run_without_smart_start(tmp_path):
     assert on != off  # and Smart Start does change the run
 
 
-def _run_collector(maze: str, steps: int, num_envs: int = 1, eta: float = 1.0):
+def _run_collector(maze: str, steps: int, num_envs: int = 1, eta: float = 1.0, guided_epsilon: float = 0.0):
     cfg = compose_cfg(
         f"+experiment={maze}_ss_her",
         f"smart_start.eta={eta}",
+        f"smart_start.guided_epsilon={guided_epsilon}",  # 0: the route is followed exactly
         f"env.num_envs={num_envs}",
         "env.max_steps=60",
         f"trainer.frames_per_batch={num_envs}",
