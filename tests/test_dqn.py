@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import pytest
 import torch
+from helpers import compose_cfg
 from tensordict import TensorDict
 from torchrl.objectives import DQNLoss
 
 from ss_drl.agents.dqn import DQNAgent
 from ss_drl.envs.maze import load_maze
 from ss_drl.her import HindsightReplayBuffer
-from tests.helpers import compose_cfg
 
 
 def make_agent(*overrides: str) -> DQNAgent:
