@@ -465,6 +465,20 @@ def test_selection_c_ss_zero_picks_argmax_q_and_never_unvisited():
     assert set(many.tolist()) <= set(counter)
 
 
+def test_selection_by_counts_alone_skips_the_network_and_matches_zero_q():
+    # w_q = 0 (the paper-setup experiments): the UCB is the count bonus alone, so the network is never evaluated,
+    # and the picks (random tie-breaks included) are those of a network that returns Q = 0 everywhere.
+    model, _ = _random_counts(40, seed=12)
+    goals = torch.zeros(500, dtype=torch.int64)
+
+    def no_network(states, goals):
+        raise AssertionError("the network was evaluated although w_q = 0")
+
+    counts_only = select_smart_start(model, no_network, goals, 0.3, w_q=0.0, generator=torch.Generator().manual_seed(4))
+    zero_q = select_smart_start(model, _zero_q, goals, 0.3, w_q=1.0, generator=torch.Generator().manual_seed(4))
+    assert torch.equal(counts_only, zero_q)
+
+
 def test_ucb_scores_formula_and_selection_agree():
     visits = torch.tensor([[1, 4, 9, 2, 30]])
     max_q = torch.tensor([[0.1, 0.5, 0.9, -0.2, 0.3]])

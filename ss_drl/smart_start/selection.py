@@ -31,7 +31,8 @@ def select_smart_start(
 
     Args:
         counts: the count model.
-        max_q_fn: ``f(states (n,), goals (B,)) -> (B, n)`` max_a Q(s||g, a), one batched evaluation.
+        max_q_fn: ``f(states (n,), goals (B,)) -> (B, n)`` max_a Q(s||g, a), one batched evaluation; not called
+            when ``w_q == 0`` (S_ss by counts alone, the paper's experiment), which then needs no network pass.
         goals: (B,) desired goal per env copy that starts an episode.
     Returns:
         (B,) smart start states.
@@ -39,7 +40,10 @@ def select_smart_start(
     states = counts.structure().states  # the visited states, cached until a new transition is seen
     if states.numel() == 0:
         raise ValueError("Smart Start needs at least one visited state")
-    max_q = max_q_fn(states, goals)  # (B, n)
+    if w_q == 0:
+        max_q = torch.zeros(goals.numel(), states.numel(), dtype=torch.float64)
+    else:
+        max_q = max_q_fn(states, goals)  # (B, n)
     scores = ucb_scores(max_q, counts.state_counts[states].unsqueeze(0), c_ss, w_q)
     best = scores.amax(dim=1, keepdim=True)
     noise = torch.rand(scores.shape, generator=generator, dtype=torch.float64)
