@@ -2,7 +2,8 @@
 
 ``python scripts/benchmark.py [--section env|train|planner|her|all] [--repeats R] [--quick]`` prints the exact
 command line, the library versions and one markdown table per section. Every number is the median of R repeats.
-All sections run with ``torch.set_num_threads(1)`` (the trainer's default, ``trainer.torch_threads: 1``).
+All sections run with one torch thread (the trainer's default, ``trainer.torch_threads: 1``) unless ``--threads``
+says otherwise.
 
 Sections:
 
@@ -213,7 +214,7 @@ def _train_overrides(experiment: str, steps: int, learning_starts: int, max_step
         f"trainer.total_env_steps={learning_starts + steps}",
         f"trainer.eval_interval={big}",
         f"trainer.checkpoint_interval={big}",
-        "trainer.torch_threads=1",
+        f"trainer.torch_threads={torch.get_num_threads()}",
         f"agent.learning_starts={learning_starts}",
         f"env.max_steps={max_steps}",
         "logger=csv",
@@ -280,7 +281,6 @@ def run_sb3(env_id: str, kwargs: dict, steps: int, learning_starts: int, max_ste
     import gymnasium
     from stable_baselines3 import DQN
 
-    torch.set_num_threads(1)
     env = gymnasium.make(env_id, max_steps=max_steps)
     model = DQN("MultiInputPolicy", env, device="cpu", seed=seed, verbose=0, **kwargs)
     t0 = time.perf_counter()
@@ -323,7 +323,7 @@ def bench_train(
     agent, her = base.agent, base.her
     out = [
         f"## train: training throughput on {base.env.preset} (median of {repeats}; {steps} timed env steps after "
-        f"learning_starts={learning_starts}; torch threads 1)",
+        f"learning_starts={learning_starts}; torch threads {torch.get_num_threads()})",
         "",
     ]
     have_sb3 = include_sb3 and sb3_available()
@@ -531,7 +531,8 @@ def bench_planner(repeats: int, mazes: Sequence[str] = PLANNER_MAZES, seed: int 
         "states with V>0",
     ]
     out = [
-        f"## planner: ms per Smart Start decision, fully explored count model (median of {repeats}; torch threads 1)",
+        "## planner: ms per Smart Start decision, fully explored count model "
+        f"(median of {repeats}; torch threads {torch.get_num_threads()})",
         "",
         f"Selection: UCB over all visited states with a fresh `GoalQNetwork` ({agent.encoder}, "
         f"hidden {list(agent.hidden)}) evaluated by `goal_q_values`, one goal; 'w_q 0': S_ss by counts alone (the "
@@ -652,6 +653,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="repeats per measurement (default: " + ", ".join(f"{k} {v}" for k, v in DEFAULT_REPEATS.items()) + ")",
     )
+    parser.add_argument(
+        "--threads", type=int, default=1, help="torch intra-op threads, for ss-drl and SB3 alike (default 1)"
+    )
     parser.add_argument("--quick", action="store_true", help="small sizes and 2 repeats: a smoke run in seconds")
     parser.add_argument(
         "--train-steps",
@@ -692,7 +696,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog = "scripts/benchmark.py"
     args = build_parser().parse_args(argv)
     _quiet_torchrl()
-    torch.set_num_threads(1)
+    if args.threads < 1:
+        build_parser().error(f"--threads must be >= 1, got {args.threads}")
+    torch.set_num_threads(args.threads)
     sections = SECTIONS if args.section == "all" else (args.section,)
     print(header(argv, prog), flush=True)
     for section in sections:

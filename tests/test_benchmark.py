@@ -5,6 +5,7 @@ No timing is asserted: the numbers depend on the machine.
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from ss_drl import benchmark
@@ -63,3 +64,16 @@ def test_cli_prints_command_and_table(capsys):
     out = capsys.readouterr().out
     assert "`$ python scripts/benchmark.py --section her --quick --repeats 1`" in out
     assert "| 10,000 |" in out and "| 1,000,000 |" in out
+
+
+def test_cli_threads_option(capsys):
+    threads = torch.get_num_threads()
+    try:
+        assert benchmark.main(["--section", "planner", "--repeats", "1", "--threads", "2"]) == 0
+        assert "(threads 2)" in capsys.readouterr().out
+        with pytest.raises(SystemExit) as exc:
+            benchmark.main(["--section", "planner", "--threads", "0"])
+    finally:
+        torch.set_num_threads(threads)
+    assert exc.value.code != 0
+    assert "--threads must be >= 1, got 0" in capsys.readouterr().err
