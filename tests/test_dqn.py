@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 from helpers import compose_cfg
@@ -80,6 +82,16 @@ def test_hard_update_reaches_the_lean_target_network():
         assert not torch.allclose(online(obs, goal), target(obs, goal))
     agent.update()  # TorchRL's HardUpdate copies on the step after `interval` counted steps
     torch.testing.assert_close(online(obs, goal), target(obs, goal))
+
+
+@pytest.mark.parametrize("target_update", ["hard", "soft"])
+def test_building_the_agent_raises_no_warning(target_update):
+    """The target updater is attached at construction: TorchRL must not warn that the target is never updated."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        agent = make_agent(f"agent.target_update={target_update}")
+        agent.replay_buffer.extend(random_batch(agent.maze.n_cells).unsqueeze(1).expand(64, 1).clone())
+        agent.update()
 
 
 def test_soft_update_moves_the_lean_target_network_by_tau():

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import warnings
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -97,7 +98,11 @@ class GoalDQNLoss(DQNLoss):
         self.advantage_learning = float(advantage_learning)
         self.__dict__["q_network"] = q_network  # not registered: its parameters are already the loss's
         target = copy.deepcopy(actor)
-        self.target_value_network_params.to_module(target)
+        with warnings.catch_warnings():
+            # The updater (HardUpdate/SoftUpdate) is attached right after construction, by DQNAgent; reading the
+            # target parameters before that makes TorchRL warn that nobody will update them.
+            warnings.filterwarnings("ignore", message="No target network updater", category=UserWarning)
+            self.target_value_network_params.to_module(target)
         self.__dict__["target_q_network"] = target.module[0].module
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
