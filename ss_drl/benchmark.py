@@ -207,6 +207,10 @@ class _TrainPhaseClock:
         return self.end[0] - self.start[0], self.end[1] - self.start[1], self.end[2] - self.start[2]
 
 
+# ss-drl's DQN in the form of SB3's: plain DQN target (no double DQN) and no dueling head; same width and batch.
+SB3_FORM = ("agent.double_dqn=false", "agent.dueling=false")
+
+
 def _train_overrides(experiment: str, steps: int, learning_starts: int, max_steps: int, seed: int) -> list[str]:
     big = 10**12
     return [
@@ -222,11 +226,13 @@ def _train_overrides(experiment: str, steps: int, learning_starts: int, max_step
     ]
 
 
-def run_ssdrl(experiment: str, steps: int, learning_starts: int, max_steps: int, seed: int = 0) -> dict:
+def run_ssdrl(
+    experiment: str, steps: int, learning_starts: int, max_steps: int, seed: int = 0, overrides: Sequence[str] = ()
+) -> dict:
     """One ss-drl training run; its training-phase and whole-run rates."""
     from ss_drl.training.trainer import Trainer
 
-    cfg = compose_config(_train_overrides(experiment, steps, learning_starts, max_steps, seed))
+    cfg = compose_config(_train_overrides(experiment, steps, learning_starts, max_steps, seed) + list(overrides))
     with tempfile.TemporaryDirectory(prefix="ssdrl-bench-") as run_dir:
         trainer = Trainer(cfg, run_dir)
         clock = _TrainPhaseClock(trainer.agent, learning_starts)
@@ -335,6 +341,8 @@ def bench_train(
         )
 
     runs: dict[str, list[dict]] = {name: [] for name in experiments}
+    sb3_form = f"{experiments[0]}, SB3's form"
+    runs[sb3_form] = []
     if have_sb3:
         runs["sb3"] = []
         kwargs = sb3_kwargs(agent, her, learning_starts, learning_starts + steps)
@@ -346,6 +354,7 @@ def bench_train(
     # Interleaved, so that drifting load on a shared machine hits every method alike.
     for _ in range(repeats):
         runs[experiments[0]].append(run_ssdrl(experiments[0], steps, learning_starts, max_steps))
+        runs[sb3_form].append(run_ssdrl(experiments[0], steps, learning_starts, max_steps, overrides=SB3_FORM))
         if have_sb3:
             runs["sb3"].append(run_sb3(env_id, kwargs, steps, learning_starts, max_steps))
         for name in experiments[1:]:
@@ -363,7 +372,10 @@ def bench_train(
             fmt_rate(m["whole_steps_per_s"]),
         ]
 
-    rows = [row(f"`{experiments[0]}`", "ss-drl (TorchRL)", runs[experiments[0]])]
+    rows = [
+        row(f"`{experiments[0]}`", "ss-drl (TorchRL)", runs[experiments[0]]),
+        row(f"`{experiments[0]}` {' '.join(SB3_FORM)} (SB3's form)", "ss-drl (TorchRL)", runs[sb3_form]),
+    ]
     if have_sb3:
         rows.append(row("SB3 `DQN` + `HerReplayBuffer`", f"stable-baselines3 {_sb3_version()}", runs["sb3"]))
     for name in experiments[1:]:
@@ -382,8 +394,12 @@ def bench_train(
         out += [note, ""]
     if have_sb3:
         ours = median([r["steps_per_s"] for r in runs[experiments[0]]])
+        same_form = median([r["steps_per_s"] for r in runs[sb3_form]])
         theirs = median([r["steps_per_s"] for r in runs["sb3"]])
         out.append(f"- ratio ours/SB3 (train-phase env steps/s, `{experiments[0]}`): **{ours / theirs:.2f}x**")
+        out.append(
+            f"- ratio ours/SB3 with SB3's form of DQN (plain target, no dueling head): **{same_form / theirs:.2f}x**"
+        )
     for name in experiments[1:]:
         decisions = median([r["decisions"] for r in runs[name]])
         out.append(f"- `{name}`: {decisions:.0f} Smart Start decisions per run (one per episode start after the first)")

@@ -126,18 +126,17 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         n_her = round(batch_size * self.relabel_ratio)
         if n_her == 0:
             return data, info
-        index = torch.as_tensor(info["index"])[:n_her]
-        new_goal = self.sample_goals(index)
-        her = data[:n_her]
-        achieved = her.get(("next", "observation"))
-        reached = (achieved == new_goal).unsqueeze(-1)
-        truncated = her.get(("next", "truncated")) & ~reached
-        her.set_("desired_goal", new_goal)
-        her.set_(("next", "desired_goal"), new_goal)
-        her.set_(("next", "reward"), reached.to(her.get(("next", "reward")).dtype))
-        her.set_(("next", "terminated"), reached)
-        her.set_(("next", "truncated"), truncated)
-        her.set_(("next", "done"), reached | truncated)
+        new_goal = self.sample_goals(torch.as_tensor(info["index"])[:n_her])
+        # ``data`` is a gathered copy, so its leaves are relabeled in place (cheaper than tensordict writes).
+        nxt = data.get("next")
+        reached = nxt.get("observation")[:n_her] == new_goal
+        truncated = nxt.get("truncated")[:n_her].squeeze(-1) & ~reached
+        data.get("desired_goal")[:n_her] = new_goal
+        nxt.get("desired_goal")[:n_her] = new_goal
+        nxt.get("reward")[:n_her] = reached.unsqueeze(-1).to(nxt.get("reward").dtype)
+        nxt.get("terminated")[:n_her] = reached.unsqueeze(-1)
+        nxt.get("truncated")[:n_her] = truncated.unsqueeze(-1)
+        nxt.get("done")[:n_her] = (reached | truncated).unsqueeze(-1)
         return data, info
 
     def sample_goals(self, index: torch.Tensor) -> torch.Tensor:
@@ -158,8 +157,15 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
             filled = min(self.rows_written, self.rows)
             source = self.rows_written - 1 - (u * filled).long().clamp(max=filled - 1)
             env = torch.randint(self.num_envs, index.shape, generator=self.generator)
-        slots = (source % self.rows) * self.num_envs + env
-        return self._storage[slots].get(("next", "observation"))
+        return self.achieved_goals((source % self.rows) * self.num_envs + env)
+
+    def achieved_goals(self, slots: torch.Tensor) -> torch.Tensor:
+        """The achieved goals (next states) stored in ``slots``.
+
+        Gathers the one stored tensor (``LazyTensorStorage`` keeps its data in ``_storage``): ``storage[slots]``
+        would gather every key.
+        """
+        return self._storage._storage.get(("next", "observation"))[slots]
 
     # --- persistence -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict:

@@ -408,15 +408,22 @@ def _elements(index, length: int) -> int:
 
 @pytest.fixture
 def storage_reads(monkeypatch):
-    """Every ``LazyTensorStorage.get`` call (``storage[...]`` included) as the number of elements it reads."""
+    """Every storage read as the number of elements it reads: ``LazyTensorStorage.get`` (``storage[...]``
+    included) and our buffer's goal gather."""
     reads: list[int] = []
     original = LazyTensorStorage.get
+    original_goals = HindsightReplayBuffer.achieved_goals
 
     def get(self, index):
         reads.append(_elements(index, len(self)))
         return original(self, index)
 
+    def achieved_goals(self, slots):
+        reads.append(_elements(slots, len(self)))
+        return original_goals(self, slots)
+
     monkeypatch.setattr(LazyTensorStorage, "get", get)
+    monkeypatch.setattr(HindsightReplayBuffer, "achieved_goals", achieved_goals)
     return reads
 
 

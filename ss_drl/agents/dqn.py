@@ -164,6 +164,10 @@ class DQNAgent:
         else:
             self.target_updater = SoftUpdate(self.loss, tau=cfg.tau)
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=cfg.lr, fused=True)
+        # Read per update: plain attributes, not DictConfig lookups (tens of microseconds each).
+        self.learning_starts, self.batch_size = int(cfg.learning_starts), int(cfg.batch_size)
+        self.train_freq, self.gradient_steps = int(cfg.train_freq), int(cfg.gradient_steps)
+        self.grad_clip = float(cfg.grad_clip)
         self.updates = 0
         self.last_loss = float("nan")
 
@@ -206,10 +210,10 @@ class DQNAgent:
     def observe(self, batch: TensorDict, env_steps: int) -> None:
         """Store a collected batch (T, N) and run the update rounds it is due."""
         self.replay_buffer.extend(batch)
-        if env_steps < self.cfg.learning_starts or len(self.replay_buffer) < self.cfg.batch_size:
+        if env_steps < self.learning_starts or len(self.replay_buffer) < self.batch_size:
             return
-        rounds = max(1, round(batch.numel() / self.cfg.train_freq))
-        for _ in range(rounds * self.cfg.gradient_steps):
+        rounds = max(1, round(batch.numel() / self.train_freq))
+        for _ in range(rounds * self.gradient_steps):
             self.update()
 
     def update(self) -> float:
@@ -222,8 +226,8 @@ class DQNAgent:
             raise FloatingPointError(f"non-finite DQN loss ({float(loss)}) at update {self.updates}")
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        if self.cfg.grad_clip > 0:
-            torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.cfg.grad_clip)
+        if self.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.grad_clip, foreach=True)
         self.optimizer.step()
         self.target_updater.step()
         self.updates += 1
