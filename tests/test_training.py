@@ -88,6 +88,20 @@ def test_guided_phase_reaches_smart_start_state_in_planned_steps():
         start += e.length
 
 
+def test_network_acts_only_on_steps_outside_the_guided_phase(monkeypatch):
+    from ss_drl.agents.dqn import DQNAgent
+
+    calls = []
+    act = DQNAgent.act
+    monkeypatch.setattr(DQNAgent, "act", lambda self, obs, goal: calls.append(obs.numel()) or act(self, obs, goal))
+    _, batch, episodes = _run_collector("easy_small", 3000)
+    guided_steps = sum(e.ss_steps for e in episodes)
+    assert guided_steps > 100
+    running = batch.numel() - sum(e.length for e in episodes)  # steps of the unfinished last episode
+    assert running >= 0 and len(calls) >= batch.numel() - guided_steps - running
+    assert len(calls) <= batch.numel() - guided_steps
+
+
 def test_eta_zero_never_guides():
     _, _, episodes = _run_collector("easy_small", 600, eta=0.0)
     assert episodes and not any(e.smart_start for e in episodes)

@@ -107,11 +107,14 @@ class MazeCollector:
         for t in range(t_max):
             td = self._td
             cells, goals = td.get("observation"), td.get("desired_goal")
-            act = self.agent.act(cells, goals)
-            guided = None
-            if ss is not None:
-                guided = ss.active.clone()
-                act = ss.guide(cells, act)
+            guided = None if ss is None else ss.active.clone()
+            if guided is not None and bool(guided.all()):
+                # Every copy follows its plan: the network's actions would all be replaced, so skip them.
+                act = ss.guide(cells, torch.zeros_like(cells))
+            else:
+                act = self.agent.act(cells, goals)
+                if guided is not None:
+                    act = ss.guide(cells, act)
             td.set("action", act)
             out, self._td = self.env.step_and_maybe_reset(td)
             nxt = out.get("next")
