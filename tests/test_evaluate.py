@@ -7,10 +7,12 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 
+from ss_drl.envs.maze import load_maze
 from ss_drl.evaluate import load_agent
-from ss_drl.training.evaluation import greedy_rollout
+from ss_drl.training.evaluation import greedy_accuracy, greedy_rollout
 from ss_drl.training.trainer import Trainer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -30,13 +32,16 @@ def test_evaluate_reproduces_the_final_greedy_evaluation(tmp_path):
         )
     summary = Trainer(cfg, tmp_path).train()
     agent, maze, _ = load_agent(tmp_path)
-    assert greedy_rollout(agent, maze, 1000).length == summary["final_eval_length"]
+    rollout = greedy_rollout(agent, maze, 1000)
+    assert rollout.length == summary["final_eval_length"]
+    assert round(rollout.accuracy, 4) == summary["final_greedy_accuracy"]
 
     result = subprocess.run(
         [sys.executable, "scripts/evaluate.py", str(tmp_path)], cwd=ROOT, capture_output=True, text=True, timeout=300
     )
     assert result.returncode == 0, result.stderr
     assert f"length {summary['final_eval_length']}" in result.stdout
+    assert f"greedy accuracy: {rollout.accuracy:.3f}" in result.stdout
     png = tmp_path / "greedy_policy.png"
     assert png.stat().st_size > 1000
     assert png.read_bytes()[:4] == b"\x89PNG"
@@ -49,3 +54,28 @@ def test_evaluate_without_checkpoint_is_a_clear_error(tmp_path):
     assert result.returncode == 2
     assert "no checkpoint.pt" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def _closer(maze, cell: int, action: int, dist) -> bool:
+    """Independent of the code under test: one maze.move and the BFS distance to G."""
+    return dist[maze.move(maze.pos(cell), action)] == dist[maze.pos(cell)] - 1
+
+
+def test_greedy_accuracy_by_hand():
+    maze = load_maze("easy_small")
+    dist = maze.distances_from(maze.goal)
+    reach = [c for c in range(maze.n_cells) if dist[maze.pos(c)] > 0]  # free cells that reach G, G aside
+    # a shortest-path policy: accuracy 1
+    best = torch.tensor([next((a for a in range(4) if _closer(maze, c, a, dist)), 0) for c in range(maze.n_cells)])
+    assert greedy_accuracy(best, maze) == 1.0
+    # one constant action everywhere: the fraction of cells where that action goes one step closer
+    for action in range(4):
+        expected = sum(_closer(maze, c, action, dist) for c in reach) / len(reach)
+        assert 0 < expected < 1
+        assert greedy_accuracy(torch.full((maze.n_cells,), action), maze) == pytest.approx(expected)
+    # spoiling the best policy in k cells (with a move that is not closer) lowers it by exactly k / len(reach)
+    spoiled = best.clone()
+    worse = [c for c in reach if any(not _closer(maze, c, a, dist) for a in range(4))][:5]
+    for c in worse:
+        spoiled[c] = next(a for a in range(4) if not _closer(maze, c, a, dist))
+    assert greedy_accuracy(spoiled, maze) == pytest.approx(1 - 5 / len(reach))

@@ -56,6 +56,7 @@ SUMMARY_KEYS = (
     "episodes",  # finished training episodes
     "env_steps",  # env steps taken
     "final_eval_length",  # length of the last greedy evaluation
+    "final_greedy_accuracy",  # at the last evaluation: fraction of states whose greedy action is on a shortest path
     "optimal_length",  # BFS shortest path S -> G
     "wall_s",  # run time in seconds
     "env_steps_per_s",

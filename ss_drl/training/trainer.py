@@ -97,6 +97,7 @@ class Trainer:
         self.episodes = 0
         self.first_goal = (None, None)  # (env step, episode) of the first success
         self.last_eval = None
+        self.last_accuracy = None  # greedy accuracy at the last evaluation
         self.next_eval = 0
         self.next_checkpoint = cfg.trainer.checkpoint_interval
         self.wall_before = 0.0  # wall time of earlier sessions of a resumed run
@@ -212,10 +213,16 @@ class Trainer:
             }
         )
         self.logger.log_metrics(
-            {"eval/length": rollout.length, "eval/success": int(rollout.success), "eval/optimal": self.optimal_length},
+            {
+                "eval/length": rollout.length,
+                "eval/success": int(rollout.success),
+                "eval/optimal": self.optimal_length,
+                "eval/greedy_accuracy": rollout.accuracy,
+            },
             step=steps,
         )
         self.last_eval = (steps, rollout.length, rollout.success)
+        self.last_accuracy = rollout.accuracy
         while self.next_eval <= steps:
             self.next_eval += self.cfg.trainer.eval_interval
         return rollout.length, rollout.success
@@ -233,6 +240,7 @@ class Trainer:
             "episodes": self.episodes,
             "env_steps": self.collector.env_steps,
             "final_eval_length": None if self.last_eval is None else self.last_eval[1],
+            "final_greedy_accuracy": None if self.last_accuracy is None else round(self.last_accuracy, 4),
             "optimal_length": self.optimal_length,
             "wall_s": round(wall, 3),
             "env_steps_per_s": round(self.collector.env_steps / max(wall, 1e-9), 1),
@@ -260,6 +268,7 @@ class Trainer:
             "episodes": self.episodes,
             "first_goal": self.first_goal,
             "last_eval": self.last_eval,
+            "last_accuracy": self.last_accuracy,
             "next_eval": self.next_eval,
             "next_checkpoint": self.next_checkpoint,
             "ss_targets": list(self.ss_targets),
@@ -285,6 +294,7 @@ class Trainer:
         self.episodes = state["episodes"]
         self.first_goal = tuple(state["first_goal"])
         self.last_eval = state["last_eval"]
+        self.last_accuracy = state.get("last_accuracy")  # absent in checkpoints written before it existed
         self.next_eval, self.next_checkpoint = state["next_eval"], state["next_checkpoint"]
         self.ss_targets = list(state["ss_targets"])
         self._recent = deque(state["recent"], maxlen=100)
