@@ -59,7 +59,9 @@ def _evals(triples):
     return rows
 
 
-def _write_run(d: Path, maze, method, seed, first_goal, wall, episodes, evals, completed=True, n_episodes=None):
+def _write_run(
+    d: Path, maze, method, seed, first_goal, wall, episodes, evals, completed=True, n_episodes=None, accuracy=None
+):
     d.mkdir(parents=True)
     summary = dict.fromkeys(SUMMARY_KEYS)
     summary.update(
@@ -72,6 +74,7 @@ def _write_run(d: Path, maze, method, seed, first_goal, wall, episodes, evals, c
             agg.SK_EPISODES: len(episodes) if n_episodes is None else n_episodes,
             agg.SK_OPTIMAL: OPTIMAL,
             agg.SK_WALL: wall,
+            agg.SK_ACCURACY: accuracy,
         }
     )
     (d / SUMMARY_FILE).write_text(json.dumps(summary))
@@ -90,10 +93,11 @@ def _build(root: Path) -> dict[str, Path]:
     # ss_her: returns 0 until episode 50 / 75 / never, then 1; lengths 20/30/40 for episodes 1-100, 10/12/14 after.
     _write_run(a / "0", MAZE, "ss_her", 0, 1000, 10.0,
                _episodes(np.where(ep <= 100, 20, 10), (ep > 50).astype(int)),
-               _evals([(500, 50, 0), (1000, 20, 0), (1500, 22, 1), (2000, 21, 1), (2500, 20, 1)]))  # fmt: skip
+               _evals([(500, 50, 0), (1000, 20, 0), (1500, 22, 1), (2000, 21, 1), (2500, 20, 1)]),
+               accuracy=0.5)  # fmt: skip
     _write_run(a / "1", MAZE, "ss_her", 1, 2000, 20.0,
                _episodes(np.where(ep <= 100, 30, 12), (ep > 75).astype(int)),
-               _evals([(500, 100, 0), (1000, 20, 1)]))  # fmt: skip
+               _evals([(500, 100, 0), (1000, 20, 1)]), accuracy=1.0)  # fmt: skip
     _write_run(a / "2", MAZE, "ss_her", 2, 6000, 60.0,
                _episodes(np.where(ep[:120] <= 100, 40, 14), np.ones(120, int)),
                _evals([(1000, 22, 1), (3000, 20, 1)]))  # fmt: skip
@@ -228,9 +232,10 @@ def test_results_table_values(loaded):
     assert ss.length_early == 30.0 and ss.length_late == 12.0
     assert (ss.near_optimal_median, ss.near_optimal_reached) == (2000.0, 3)  # first hits: 2000, 1000, 3000
     assert ss.wall_median == 20.0
+    assert ss.greedy_accuracy == 0.75  # seeds 0 and 1 (0.5, 1.0); seed 2's summary has none
     assert ss.cells() == [
         MAZE, "ss_her", "3", f"3,000.0 ± {(high - low) / 2:,.1f}", "2,000.0", "3/3 seeds",
-        "0.583", "1.000", "30.0", "12.0", "2,000.0", "3/3 seeds", "20.0",
+        "0.583", "1.000", "30.0", "12.0", "2,000.0", "3/3 seeds", "0.750", "20.0",
     ]  # fmt: skip
 
     dqn = rows[(MAZE, "dqn")]
@@ -239,7 +244,7 @@ def test_results_table_values(loaded):
     assert (dqn.near_optimal_median, dqn.near_optimal_reached) == (None, 0)
     assert dqn.cells() == [
         MAZE, "dqn", "3", "9,000.0 ± 0.0", "9,000.0", "1/3 seeds",
-        "0.003", "–", "100.0", "–", "never", "0/3 seeds", "6.0",
+        "0.003", "–", "100.0", "–", "never", "0/3 seeds", "–", "6.0",
     ]  # fmt: skip
 
     other = rows[(OTHER_MAZE, "dqn")]

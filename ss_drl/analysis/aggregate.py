@@ -66,6 +66,7 @@ SK_FIRST_GOAL = _field(SUMMARY_KEYS, "first_goal_env_step")
 SK_EPISODES = _field(SUMMARY_KEYS, "episodes")
 SK_OPTIMAL = _field(SUMMARY_KEYS, "optimal_length")
 SK_WALL = _field(SUMMARY_KEYS, "wall_s")
+SK_ACCURACY = _field(SUMMARY_KEYS, "final_greedy_accuracy")
 
 #: Numeric columns parsed from each CSV (the others, e.g. the ``ss_target`` string, are only checked for presence).
 EPISODE_NUMERIC = (EP_EPISODE, EP_ENV_STEPS, EP_LENGTH, EP_RETURN, EP_SUCCESS)
@@ -404,6 +405,8 @@ class TableRow:
       ``*_late``: the same over episodes ``EARLY_EPISODES + 1`` onwards (None when no seed has them).
     * ``near_optimal_median``: median over the seeds that got there (``near_optimal_reached`` of ``seeds``) of the env
       steps until the greedy evaluation succeeded within 5% of the shortest path; None ("never") when none did.
+    * ``greedy_accuracy``: mean over the seeds whose summary has it of the final greedy accuracy (the fraction of
+      states whose greedy action is on a shortest path to G); None when none has it (runs from before it existed).
     * ``wall_median``: median wall time per run in seconds (None when no summary has it).
     """
 
@@ -421,6 +424,7 @@ class TableRow:
     length_late: float | None
     near_optimal_median: float | None
     near_optimal_reached: int
+    greedy_accuracy: float | None
     wall_median: float | None
 
     def cells(self) -> list[str]:
@@ -443,6 +447,7 @@ class TableRow:
             _fmt(self.length_late, ",.1f"),
             "never" if self.near_optimal_median is None else f"{self.near_optimal_median:,.1f}",
             f"{self.near_optimal_reached}/{self.seeds} seeds",
+            _fmt(self.greedy_accuracy, ".3f"),
             _fmt(self.wall_median, ",.1f"),
         ]
 
@@ -464,6 +469,7 @@ TABLE_HEADER = (
     f"length (ep {EARLY_EPISODES + 1}+)",
     f"env steps to ≤{NEAR_OPTIMAL:g}× optimal (median)",
     f"≤{NEAR_OPTIMAL:g}× optimal",
+    "final greedy accuracy (mean)",
     "wall s/run (median)",
 )
 
@@ -481,6 +487,7 @@ def table_row(maze: str, method: str, runs: Sequence[Run], n_resamples: int = 10
         fg_mean = fg_low = fg_high = fg_median = None
     near = [s for s in (near_optimal_env_step(r) for r in runs) if s is not None]
     walls = [float(r.summary[SK_WALL]) for r in runs if _is_number(r.summary.get(SK_WALL))]
+    accuracy = [float(r.summary[SK_ACCURACY]) for r in runs if _is_number(r.summary.get(SK_ACCURACY))]
     return TableRow(
         maze=maze,
         method=method,
@@ -496,6 +503,7 @@ def table_row(maze: str, method: str, runs: Sequence[Run], n_resamples: int = 10
         length_late=_episode_block_mean(runs, EP_LENGTH, EARLY_EPISODES + 1, math.inf),
         near_optimal_median=float(np.median(near)) if near else None,
         near_optimal_reached=len(near),
+        greedy_accuracy=float(np.mean(accuracy)) if accuracy else None,
         wall_median=float(np.median(walls)) if walls else None,
     )
 
