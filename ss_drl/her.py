@@ -129,14 +129,14 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         new_goal = self.sample_goals(torch.as_tensor(info["index"])[:n_her])
         # ``data`` is a gathered copy, so its leaves are relabeled in place (cheaper than tensordict writes).
         nxt = data.get("next")
-        reached = nxt.get("observation")[:n_her] == new_goal
-        truncated = nxt.get("truncated")[:n_her].squeeze(-1) & ~reached
+        reached = (nxt.get("observation")[:n_her] == new_goal).unsqueeze(-1)  # (n_her, 1), like the flags
+        truncated = nxt.get("truncated")[:n_her] & ~reached
         data.get("desired_goal")[:n_her] = new_goal
         nxt.get("desired_goal")[:n_her] = new_goal
-        nxt.get("reward")[:n_her] = reached.unsqueeze(-1).to(nxt.get("reward").dtype)
-        nxt.get("terminated")[:n_her] = reached.unsqueeze(-1)
-        nxt.get("truncated")[:n_her] = truncated.unsqueeze(-1)
-        nxt.get("done")[:n_her] = (reached | truncated).unsqueeze(-1)
+        nxt.get("reward")[:n_her] = reached
+        nxt.get("terminated")[:n_her] = reached
+        nxt.get("truncated")[:n_her] = truncated
+        nxt.get("done")[:n_her] = reached | truncated
         return data, info
 
     def sample_goals(self, index: torch.Tensor) -> torch.Tensor:

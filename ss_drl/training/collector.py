@@ -109,12 +109,11 @@ class MazeCollector:
             cells, goals = td.get("observation"), td.get("desired_goal")
             guided = None if ss is None else ss.active.clone()
             if guided is not None and bool(guided.all()):
-                # Every copy follows its plan: the network's actions would all be replaced, so skip them.
-                act = ss.guide(cells, torch.zeros_like(cells))
+                act = torch.zeros_like(cells)  # every copy follows its plan: the network's actions would be replaced
             else:
                 act = self.agent.act(cells, goals)
-                if guided is not None:
-                    act = ss.guide(cells, act)
+            if guided is not None:
+                act = ss.guide(cells, act)
             td.set("action", act)
             out, self._td = self.env.step_and_maybe_reset(td)
             nxt = out.get("next")
