@@ -248,6 +248,54 @@ def run_ssdrl(
     }
 
 
+def run_bare_update(agent_cfg, preset: str, updates: int, seed: int = 0) -> dict:
+    """The ceiling of an eager-PyTorch trainer: updates/s of a bare DQN update of the same network in SB3's form.
+
+    The same ``GoalQNetwork`` (width, embeddings) without the dueling head, a plain ``max_a Q'`` target from a copy,
+    the same batch size, Adam and gradient clipping; the batches are made up in advance. No env, no replay buffer,
+    no TorchRL or tensordict: only the PyTorch arithmetic that every update of either library runs. At one update
+    per env step, no trainer built on eager PyTorch can step the env faster than this rate on this machine.
+    """
+    import copy
+
+    from ss_drl.agents.dqn import GoalQNetwork
+    from ss_drl.envs.maze import load_maze
+
+    maze = load_maze(preset)
+    torch.manual_seed(seed)
+    net = GoalQNetwork(maze, agent_cfg.encoder, agent_cfg.embed_dim, tuple(agent_cfg.hidden), dueling=False)
+    target = copy.deepcopy(net).requires_grad_(False)
+    optimizer = torch.optim.Adam(net.parameters(), lr=float(agent_cfg.lr), fused=True)
+    gamma, clip, size = float(agent_cfg.gamma), float(agent_cfg.grad_clip), int(agent_cfg.batch_size)
+
+    def cells() -> torch.Tensor:
+        return torch.randint(0, maze.n_cells, (size,))
+
+    batches = [
+        (cells(), cells(), torch.randint(0, 4, (size, 1)), cells(), torch.rand(size, 1), torch.rand(size, 1) < 0.1)
+        for _ in range(min(updates, 64))
+    ]
+
+    def update(obs, goal, action, next_obs, reward, terminated) -> None:
+        pred = net(obs, goal).gather(-1, action)
+        with torch.no_grad():
+            next_value = target(next_obs, goal).amax(-1, keepdim=True)
+            td_target = reward + gamma * (~terminated).float() * next_value
+        loss = torch.nn.functional.mse_loss(pred, td_target)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if clip > 0:
+            torch.nn.utils.clip_grad_norm_(net.parameters(), clip, foreach=True)
+        optimizer.step()
+
+    for batch in batches[:8]:  # warm-up
+        update(*batch)
+    start = time.perf_counter()
+    for i in range(updates):
+        update(*batches[i % len(batches)])
+    return {"updates_per_s": updates / (time.perf_counter() - start)}
+
+
 def sb3_available() -> bool:
     try:
         import stable_baselines3  # noqa: F401
@@ -346,6 +394,7 @@ def bench_train(
     if have_sb3:
         runs["sb3"] = []
         kwargs = sb3_kwargs(agent, her, learning_starts, learning_starts + steps)
+    bare: list[dict] = []
     # Warm-up (imports, allocator, first-call overheads): a short run of each, untimed.
     run_ssdrl(experiments[0], min(steps, 40), min(learning_starts, 40), max_steps=min(max_steps, 40))
     if have_sb3:
@@ -359,6 +408,7 @@ def bench_train(
             runs["sb3"].append(run_sb3(env_id, kwargs, steps, learning_starts, max_steps))
         for name in experiments[1:]:
             runs[name].append(run_ssdrl(name, steps, learning_starts, max_steps))
+        bare.append(run_bare_update(agent, base.env.preset, steps))
 
     def row(label: str, framework: str, results: list[dict]) -> list:
         m = {key: median([r[key] for r in results]) for key in ("steps_per_s", "updates_per_s", "whole_steps_per_s")}
@@ -380,6 +430,20 @@ def bench_train(
         rows.append(row("SB3 `DQN` + `HerReplayBuffer`", f"stable-baselines3 {_sb3_version()}", runs["sb3"]))
     for name in experiments[1:]:
         rows.append(row(f"`{name}` (Smart Start on; for information)", "ss-drl (TorchRL)", runs[name]))
+    # At train_freq env steps per gradient_steps updates, the bare update rate bounds the env steps/s.
+    steps_per_update = int(agent.train_freq) / int(agent.gradient_steps)
+    bare_rate = median([r["updates_per_s"] for r in bare])
+    rows.append(
+        [
+            "bare PyTorch update, SB3's form (no env, no buffer, no TorchRL): the eager-PyTorch ceiling",
+            f"torch {torch.__version__}",
+            "-",
+            steps,
+            fmt_rate(bare_rate * steps_per_update),
+            f"{bare_rate:.1f}",
+            "-",
+        ]
+    )
     headers = [
         "run",
         "framework",
@@ -399,6 +463,10 @@ def bench_train(
         out.append(f"- ratio ours/SB3 (train-phase env steps/s, `{experiments[0]}`): **{ours / theirs:.2f}x**")
         out.append(
             f"- ratio ours/SB3 with SB3's form of DQN (plain target, no dueling head): **{same_form / theirs:.2f}x**"
+        )
+        out.append(
+            f"- ceiling/SB3: **{bare_rate * steps_per_update / theirs:.2f}x**: at this update-to-data ratio no "
+            "trainer built on eager PyTorch steps the env faster than its bare update allows, env and buffer free"
         )
     for name in experiments[1:]:
         decisions = median([r["decisions"] for r in runs[name]])
@@ -476,6 +544,22 @@ def _timed(fn: Callable, repeats: int) -> tuple[float, object]:
     return median(times) * 1e3, result
 
 
+def matmul_floor(n: int, embed_dim: int, hidden: Sequence[int], actions: int = 4) -> Callable[[], None]:
+    """The matrix products alone of one Q evaluation of ``n`` states for one goal: the state half of the first layer
+    (n x E by E x H1), the hidden layers and the head, into preallocated outputs. Any evaluation of Q for all visited
+    states with this network costs at least this much (its non-matmul work is extra)."""
+    widths = [embed_dim, *hidden, actions]
+    inputs = [torch.rand(n, w) for w in widths[:-1]]
+    weights = [torch.rand(a, b) for a, b in zip(widths[:-1], widths[1:])]
+    outputs = [torch.empty(n, w) for w in widths[1:]]
+
+    def run() -> None:
+        for x, w, out in zip(inputs, weights, outputs):
+            torch.mm(x, w, out=out)
+
+    return run
+
+
 def bench_planner(repeats: int, mazes: Sequence[str] = PLANNER_MAZES, seed: int = 0) -> str:
     """ms per Smart Start decision (UCB selection + value iteration) on fully explored mazes (median of repeats)."""
     from omegaconf import OmegaConf
@@ -507,6 +591,9 @@ def bench_planner(repeats: int, mazes: Sequence[str] = PLANNER_MAZES, seed: int 
         select = functools.partial(select_smart_start, counts, max_q, goals, ss.c_ss, ss.w_q, gen)
         select()  # warm-up
         select_ms, _ = _timed(select, repeats)
+        floor = matmul_floor(visited.numel(), agent.embed_dim, list(agent.hidden))
+        floor()  # warm-up
+        floor_ms, _ = _timed(floor, repeats)
         # S_ss by counts alone (w_q = 0, the paper-setup experiments): no network evaluation.
         counts_ms, _ = _timed(functools.partial(select_smart_start, counts, max_q, goals, ss.c_ss, 0.0, gen), repeats)
         for label, target in targets.items():
@@ -523,6 +610,7 @@ def bench_planner(repeats: int, mazes: Sequence[str] = PLANNER_MAZES, seed: int 
                     visited.numel(),
                     f"{label} ({r},{c})",
                     fmt_ms(select_ms),
+                    fmt_ms(floor_ms),
                     fmt_ms(plan_ms),
                     fmt_ms(select_ms + plan_ms),
                     fmt_ms(counts_ms + plan_ms),
@@ -532,13 +620,14 @@ def bench_planner(repeats: int, mazes: Sequence[str] = PLANNER_MAZES, seed: int 
                 ]
             )
             if name == "extreme":
-                extreme_total.append((select_ms + plan_ms, counts_ms + plan_ms))
+                extreme_total.append((select_ms + plan_ms, counts_ms + plan_ms, floor_ms + plan_ms))
     headers = [
         "maze",
         "size",
         "visited states",
         "target S_ss",
         "selection ms",
+        "its matmuls alone ms",
         "planning ms",
         "decision ms",
         "decision ms, w_q 0",
@@ -552,7 +641,8 @@ def bench_planner(repeats: int, mazes: Sequence[str] = PLANNER_MAZES, seed: int 
         "",
         f"Selection: UCB over all visited states with a fresh `GoalQNetwork` ({agent.encoder}, "
         f"hidden {list(agent.hidden)}) evaluated by `goal_q_values`, one goal; 'w_q 0': S_ss by counts alone (the "
-        "paper-setup experiments), which needs no network pass. Planning: `Planner.plan` "
+        "paper-setup experiments), which needs no network pass. 'its matmuls alone': the matrix products of that "
+        "evaluation on preallocated tensors, nothing else. Planning: `Planner.plan` "
         f"(gamma={ss.gamma}, theta={ss.theta}, tol={ss.tol}, max_sweeps={ss.max_sweeps}) towards the target. "
         "'states with V>0': visited states other than the target from which the plan has a route.",
         "",
@@ -569,6 +659,11 @@ def bench_planner(repeats: int, mazes: Sequence[str] = PLANNER_MAZES, seed: int 
                 f"- target < {EXTREME_TARGET_MS:g} ms per decision on Extreme, {form}: {verdict} "
                 f"(worst target: {worst:.1f} ms)"
             )
+        floor = max(t[2] for t in extreme_total)
+        out.append(
+            f"- the UCB's matrix products alone plus planning take {floor:.1f} ms on Extreme: the least any "
+            "selection that evaluates Q for every visited state with this network can cost here"
+        )
     return "\n".join(out) + "\n"
 
 

@@ -34,9 +34,10 @@ def test_train_section_rows():
     assert any("`easy_dqn_her`" in row for row in rows)
     assert any("`easy_ss_her`" in row for row in rows)
     assert any("agent.double_dqn=false agent.dueling=false (SB3's form)" in row for row in rows)
+    assert any("the eager-PyTorch ceiling" in row for row in rows)
     if benchmark.sb3_available():
         assert any("SB3 `DQN` + `HerReplayBuffer`" in row for row in rows)
-        assert "ratio ours/SB3" in text and "with SB3's form of DQN" in text
+        assert "ratio ours/SB3" in text and "with SB3's form of DQN" in text and "ceiling/SB3" in text
     else:
         assert "stable-baselines3 is not installed" in text
 
