@@ -547,17 +547,22 @@ def _timed(fn: Callable, repeats: int) -> tuple[float, object]:
 
 
 def matmul_floor(n: int, embed_dim: int, hidden: Sequence[int], actions: int = 4) -> Callable[[], None]:
-    """The matrix products alone of one Q evaluation of ``n`` states for one goal: the state half of the first layer
-    (n x E by E x H1), the hidden layers and the head, into preallocated outputs. Any evaluation of Q for all visited
-    states with this network costs at least this much (its non-matmul work is extra)."""
+    """The matrix products alone of one Q evaluation of ``n`` states for one goal, in ``goal_q_values``' row blocks:
+    the state half of the first layer (E -> H1), the hidden layers and the head, into preallocated outputs. Any
+    evaluation of Q for all visited states with this network costs at least this much (the rest is extra)."""
+    from ss_drl.smart_start.selection import BLOCK_ROWS
+
+    block = min(BLOCK_ROWS, n)
+    sizes = [min(block, n - start) for start in range(0, n, block)]
     widths = [embed_dim, *hidden, actions]
-    inputs = [torch.rand(n, w) for w in widths[:-1]]
+    inputs = [torch.rand(block, w) for w in widths[:-1]]
     weights = [torch.rand(a, b) for a, b in zip(widths[:-1], widths[1:])]
-    outputs = [torch.empty(n, w) for w in widths[1:]]
+    outputs = [torch.empty(block, w) for w in widths[1:]]
 
     def run() -> None:
-        for x, w, out in zip(inputs, weights, outputs):
-            torch.mm(x, w, out=out)
+        for rows in sizes:
+            for x, w, out in zip(inputs, weights, outputs):
+                torch.mm(x[:rows], w, out=out[:rows])
 
     return run
 
