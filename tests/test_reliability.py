@@ -14,7 +14,7 @@ import pytest
 import torch
 from helpers import ROOT, compose_cfg
 
-from ss_drl.training.outputs import CHECKPOINT_FILE, EPISODES_FILE, EVAL_FILE, SUMMARY_FILE
+from ss_drl.training.outputs import CHECKPOINT_FILE, EPISODES_FILE, EVAL_FILE, SUMMARY_FILE, truncate_csv
 from ss_drl.training.trainer import Trainer
 
 SMALL = [
@@ -91,10 +91,25 @@ def test_sigterm_then_resume_equals_uninterrupted_run(tmp_path):
     assert resumed.returncode == 0, resumed.stderr
     for file in (EPISODES_FILE, EVAL_FILE):
         assert rows_without_wall(cut / file) == rows_without_wall(full / file), file
+        data = (cut / file).read_bytes()
+        assert data.count(b"\r\n") == data.count(b"\n"), f"{file}: mixed line endings after resume"
     a = json.loads((full / SUMMARY_FILE).read_text())
     b = json.loads((cut / SUMMARY_FILE).read_text())
     for key in ("episodes", "env_steps", "first_goal_env_step", "final_eval_length", "completed"):
         assert a[key] == b[key]
+
+
+def test_truncate_csv_keeps_the_rows_bytes(tmp_path):
+    """Resume cuts episodes.csv/eval.csv back to the checkpoint: the rows it keeps must stay byte for byte as the
+    csv module wrote them (\r\n), or the resumed run leaves a file of mixed line endings (a bug, fixed)."""
+    path = tmp_path / "rows.csv"
+    with path.open("w", newline="") as f:
+        csv.writer(f).writerows([["a", "b"], [1, 2], [3, 4], [5, 6]])
+    truncate_csv(path, 2)
+    assert path.read_bytes() == b"a,b\r\n1,2\r\n3,4\r\n"
+    with path.open("a", newline="") as f:
+        csv.writer(f).writerow([7, 8])
+    assert path.read_bytes() == b"a,b\r\n1,2\r\n3,4\r\n7,8\r\n"
 
 
 def test_resume_without_checkpoint_is_a_clear_error(tmp_path):

@@ -78,10 +78,13 @@ def truncate_csv(path: Path, keep_rows: int) -> None:
     """Keep the header and the first ``keep_rows`` data rows (used on resume, to drop rows after the checkpoint)."""
     if not path.exists():
         return
-    with path.open() as f:
+    # newline="": the rows keep their bytes (the csv module ends them with \r\n); text mode would rewrite the kept
+    # rows with \n and leave a file of mixed line endings once the resumed run appends.
+    with path.open(newline="") as f:
         lines = f.readlines()
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text("".join(lines[: keep_rows + 1]))
+    with tmp.open("w", newline="") as f:
+        f.write("".join(lines[: keep_rows + 1]))
     os.replace(tmp, path)
 
 
