@@ -87,6 +87,21 @@ def test_experiment_composes_and_validates(name):
     assert cfg.agent.name == ("tabular" if method.startswith("tabular") else "dqn")
 
 
+DEEP_METHODS = ("dqn", "dqn_her", "ss", "ss_her")
+
+
+@pytest.mark.parametrize("maze", sorted({name.rsplit("_" + method_of(name), 1)[0] for name in EXPERIMENTS}))
+def test_deep_methods_on_a_maze_share_the_learner(maze):
+    """Comparing DQN, DQN+HER, SS and SS+HER on a maze compares exploration and relabeling, not learners: their
+    experiments set the same agent config (a per-maze learning rate or discount goes into all four)."""
+    names = [f"{maze}_{method}" for method in DEEP_METHODS if f"{maze}_{method}" in EXPERIMENTS]
+    agents = {name: OmegaConf.to_container(compose_cfg(name).agent) for name in names}
+    first = agents[names[0]]
+    for name in names[1:]:
+        diff = {k: (first.get(k), v) for k, v in agents[name].items() if first.get(k) != v}
+        assert not diff, f"{name} differs from {names[0]} in agent: {diff}"
+
+
 # --- (b) every field carries a one-line comment ---
 KEY_LINE = re.compile(r"^(?P<indent> *)(?P<key>[A-Za-z_][\w-]*):(?P<rest>.*)$")
 SKIPPED_BLOCKS = ("hydra", "defaults")
