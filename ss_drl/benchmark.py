@@ -649,7 +649,7 @@ def bench_planner(repeats: int, mazes: Sequence[str] = PLANNER_MAZES, seed: int 
         f"Selection: UCB over all visited states with a fresh `GoalQNetwork` ({agent.encoder}, "
         f"hidden {list(agent.hidden)}) evaluated by `goal_q_values`, one goal; 'w_q 0': S_ss by counts alone (the "
         "paper-setup experiments), which needs no network pass. 'its matmuls alone': the matrix products of that "
-        "evaluation on preallocated tensors, nothing else. Planning: `Planner.plan` "
+        "evaluation, in its row blocks, on preallocated tensors, nothing else. Planning: `Planner.plan` "
         f"(gamma={ss.gamma}, theta={ss.theta}, tol={ss.tol}, max_sweeps={ss.max_sweeps}) towards the target. "
         "'states with V>0': visited states other than the target from which the plan has a route.",
         "",
@@ -666,10 +666,10 @@ def bench_planner(repeats: int, mazes: Sequence[str] = PLANNER_MAZES, seed: int 
                 f"- target < {EXTREME_TARGET_MS:g} ms per decision on Extreme, {form}: {verdict} "
                 f"(worst target: {worst:.1f} ms)"
             )
-        floor = max(t[2] for t in extreme_total)
+        floor_total = max(t[2] for t in extreme_total)
         out.append(
-            f"- the UCB's matrix products alone plus planning take {floor:.1f} ms on Extreme: the least any "
-            "selection that evaluates Q for every visited state with this network can cost here"
+            f"- the UCB's matrix products alone plus planning take {floor_total:.1f} ms on Extreme: the least a "
+            "decision that evaluates Q for every visited state with this network can cost here"
         )
     return "\n".join(out) + "\n"
 
