@@ -178,33 +178,21 @@ def compose_config(overrides: Sequence[str]):
         return compose("config", overrides=list(overrides))
 
 
-class _TrainPhaseClock:
-    """Wraps ``agent.observe`` to time the training phase: from the end of the last ``observe`` call before
-    ``learning_starts`` (so the window holds the rollouts and updates of every learning round) to the end of the last.
-    """
+def train_phase_window(run_dir) -> tuple[float, int, int]:
+    """(seconds, env steps, updates) of the training phase, from the run's train.csv: between its first row (the
+    first ``trainer.log_interval`` updates after ``learning_starts``) and its last, so rollouts and updates alike."""
+    import csv
 
-    def __init__(self, agent, learning_starts: int):
-        self.agent = agent
-        self.learning_starts = int(learning_starts)
-        self._observe = agent.observe
-        agent.observe = self.observe  # the instance attribute shadows the method
-        self.last = (time.perf_counter(), 0, 0)  # (time, env steps, updates) after the previous observe call
-        self.start: tuple[float, int, int] | None = None
-        self.end: tuple[float, int, int] | None = None
-
-    def observe(self, batch, env_steps: int) -> None:
-        if self.start is None and env_steps >= self.learning_starts:
-            self.start = self.last
-        self._observe(batch, env_steps)
-        self.last = (time.perf_counter(), env_steps, self.agent.updates)
-        if self.start is not None:
-            self.end = self.last
-
-    def window(self) -> tuple[float, int, int]:
-        """(seconds, env steps, updates) of the training phase."""
-        if self.start is None or self.end is None:
-            return float("nan"), 0, 0
-        return self.end[0] - self.start[0], self.end[1] - self.start[1], self.end[2] - self.start[2]
+    with open(Path(run_dir) / "train.csv") as f:
+        rows = list(csv.DictReader(f))
+    if len(rows) < 2:
+        return float("nan"), 0, 0
+    first, last = rows[0], rows[-1]
+    return (
+        float(last["wall_s"]) - float(first["wall_s"]),
+        int(last["env_steps"]) - int(first["env_steps"]),
+        int(last["updates"]) - int(first["updates"]),
+    )
 
 
 # ss-drl's DQN in the form of SB3's: plain DQN target (no double DQN) and no dueling head; same width and batch.
@@ -218,6 +206,7 @@ def _train_overrides(experiment: str, steps: int, learning_starts: int, max_step
         f"trainer.total_env_steps={learning_starts + steps}",
         f"trainer.eval_interval={big}",
         f"trainer.checkpoint_interval={big}",
+        "trainer.log_interval=10",  # train.csv rows time the training phase
         f"trainer.torch_threads={torch.get_num_threads()}",
         f"agent.learning_starts={learning_starts}",
         f"env.max_steps={max_steps}",
@@ -234,10 +223,8 @@ def run_ssdrl(
 
     cfg = compose_config(_train_overrides(experiment, steps, learning_starts, max_steps, seed) + list(overrides))
     with tempfile.TemporaryDirectory(prefix="ssdrl-bench-") as run_dir:
-        trainer = Trainer(cfg, run_dir)
-        clock = _TrainPhaseClock(trainer.agent, learning_starts)
-        summary = trainer.train()
-    seconds, env_steps, updates = clock.window()
+        summary = Trainer(cfg, run_dir).train()
+        seconds, env_steps, updates = train_phase_window(run_dir)
     return {
         "steps_per_s": env_steps / seconds,
         "updates_per_s": updates / seconds,

@@ -35,8 +35,8 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.run_dir / CHECKPOINT_FILE).is_file():
         print(f"evaluate.py: error: no {CHECKPOINT_FILE} in {args.run_dir}", file=sys.stderr)
         return 2
-    from ss_drl.analysis.figures import plot_policy
-    from ss_drl.training.evaluation import greedy_rollout
+    from ss_drl.training.figures import plot_policy
+    from ss_drl.training.greedy import greedy_rollout
 
     agent, maze, cfg = load_agent(args.run_dir)
     optimal = maze.shortest_path_length

@@ -13,8 +13,9 @@ until then it is the newest row). Sampling is then O(batch), whatever the number
 * ``episode``: of any stored step of the same episode;
 * ``random``: of any stored transition.
 
-A fraction k / (k + 1) of each batch is relabeled. For a relabeled transition reward **and** terminated/done are
-recomputed for the new goal: one that reaches its goal is terminal, so the target never bootstraps past it.
+A fraction k / (k + 1) of each batch is relabeled (the first items; the sample's ``relabeled`` key marks them).
+For a relabeled transition reward **and** terminated/done are recomputed for the new goal: one that reaches its goal
+is terminal, so the target never bootstraps past it.
 
 ``torchrl.data.HERReplayBuffer`` (torchrl 0.13/0.14) is not used: it takes the goal from the pre-action achieved
 goal, keeps stale terminated/done flags, and rescans the whole storage after every write (see ``tests/test_her.py``).
@@ -124,6 +125,9 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
     def _sample(self, batch_size: int):
         data, info = super()._sample(batch_size)
         n_her = round(batch_size * self.relabel_ratio)
+        relabeled = torch.zeros(batch_size, dtype=torch.bool)
+        relabeled[:n_her] = True
+        data.set("relabeled", relabeled)  # which items carry a relabeled goal (the first n_her)
         if n_her == 0:
             return data, info
         new_goal = self.sample_goals(torch.as_tensor(info["index"])[:n_her])

@@ -8,6 +8,9 @@ import pytest
 import torch
 from helpers import compose_cfg
 from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torchrl.data import Categorical
+from torchrl.modules import QValueActor
 from torchrl.objectives import DQNLoss
 
 from ss_drl.agents.dqn import DQNAgent
@@ -39,14 +42,27 @@ def random_batch(n_cells: int, size: int = 64, seed: int = 0) -> TensorDict:
                 "truncated": torch.zeros_like(terminated),
                 "done": terminated,
             },
+            "relabeled": torch.zeros(size, dtype=torch.bool),
         },
         batch_size=(size,),
     )
 
 
 def reference_loss(agent: DQNAgent, batch: TensorDict) -> torch.Tensor:
-    """TorchRL's own ``DQNLoss.forward`` on the agent's loss module (same parameters, same target parameters)."""
-    return DQNLoss.forward(agent.loss, batch.clone())["loss"]
+    """TorchRL's own ``DQNLoss`` on the agent's network: same parameters, a copy of the agent's target parameters."""
+    keys = ["observation", "desired_goal"]
+    module = TensorDictModule(agent.q_network, in_keys=keys, out_keys=["action_value"])
+    actor = QValueActor(module, in_keys=keys, spec=Categorical(4, dtype=torch.int64), action_space="categorical")
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="No target network updater", category=UserWarning)
+        reference = DQNLoss(
+            actor, delay_value=True, double_dqn=agent.loss.double_dqn, loss_function=agent.loss.loss_function
+        )
+        reference.make_value_estimator(gamma=agent.loss.gamma)
+        theirs = reference.target_value_network_params
+        for key, value in agent.loss.target_value_network_params.items(True, True):
+            theirs.get(("module", "0", "module", *key)).data.copy_(value)
+    return reference(batch.clone())["loss"]
 
 
 @pytest.mark.parametrize("double_dqn", [True, False])
@@ -73,7 +89,7 @@ def test_lean_loss_equals_torchrl_dqn_loss(double_dqn, loss):
 
 def test_hard_update_reaches_the_lean_target_network():
     agent = make_agent("agent.target_update=hard", "agent.target_update_interval=2")
-    online, target = agent.q_network, agent.loss.target_q_network
+    online, target = agent.q_network, agent.loss.target_value_network
     batch = random_batch(agent.maze.n_cells)
     obs, goal = batch["observation"], batch["desired_goal"]
     agent.replay_buffer.extend(batch.unsqueeze(1).expand(64, 1).clone())
@@ -96,11 +112,11 @@ def test_building_the_agent_raises_no_warning(target_update):
 
 def test_soft_update_moves_the_lean_target_network_by_tau():
     agent = make_agent("agent.target_update=soft", "agent.tau=0.5")
-    before = {k: v.clone() for k, v in agent.loss.target_q_network.state_dict().items()}
+    before = {k: v.clone() for k, v in agent.loss.target_value_network.network.state_dict().items()}
     batch = random_batch(agent.maze.n_cells)
     agent.replay_buffer.extend(batch.unsqueeze(1).expand(64, 1).clone())
     agent.update()
-    after = agent.loss.target_q_network.state_dict()
+    after = agent.loss.target_value_network.network.state_dict()
     online = agent.q_network.state_dict()
     for name, old in before.items():
         torch.testing.assert_close(after[name], 0.5 * old + 0.5 * online[name])
@@ -116,7 +132,7 @@ def test_checkpoint_round_trip_keeps_the_target_network():
     fresh.load_state_dict(state)
     batch = random_batch(agent.maze.n_cells)
     obs, goal = batch["observation"], batch["desired_goal"]
-    torch.testing.assert_close(fresh.loss.target_q_network(obs, goal), agent.loss.target_q_network(obs, goal))
+    torch.testing.assert_close(fresh.loss.target_value_network(obs, goal), agent.loss.target_value_network(obs, goal))
     torch.testing.assert_close(fresh.loss(batch.clone())["loss"], agent.loss(batch.clone())["loss"])
 
 
@@ -135,7 +151,7 @@ def test_env_scale_maps_step_cost_values_to_the_env_reward_scale(step_cost):
 def test_step_cost_is_subtracted_from_the_reward_the_loss_sees():
     plain, costly = make_agent("agent.step_cost=0"), make_agent("agent.step_cost=1")
     costly.q_network.load_state_dict(plain.q_network.state_dict())
-    costly.loss.target_q_network.load_state_dict(plain.loss.target_q_network.state_dict())
+    costly.loss.target_value_network.network.load_state_dict(plain.loss.target_value_network.network.state_dict())
     batch = random_batch(plain.maze.n_cells)
     shifted = batch.clone()
     shifted.set(("next", "reward"), batch.get(("next", "reward")) - 1)
@@ -153,7 +169,7 @@ def test_advantage_learning_target_by_hand():
         for p in agent.loss.target_value_network_params.values(True, True):
             p.add_(0.05 * torch.randn_like(p))
     batch = random_batch(agent.maze.n_cells)
-    online, target, gamma = agent.q_network, agent.loss.target_q_network, agent.cfg.gamma
+    online, target, gamma = agent.q_network, agent.loss.target_value_network, agent.cfg.gamma
     with torch.no_grad():
         obs, goal, action = batch["observation"], batch["desired_goal"], batch["action"]
         q_t = target(obs, goal)

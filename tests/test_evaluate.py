@@ -12,7 +12,7 @@ from hydra import compose, initialize_config_dir
 
 from ss_drl.envs.maze import load_maze
 from ss_drl.evaluate import load_agent
-from ss_drl.training.evaluation import greedy_accuracy, greedy_rollout
+from ss_drl.training.greedy import greedy_accuracy, greedy_rollout
 from ss_drl.training.trainer import Trainer
 
 ROOT = Path(__file__).resolve().parents[1]

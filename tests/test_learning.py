@@ -11,9 +11,8 @@ from ss_drl.agents.dqn import DQNAgent
 from ss_drl.envs.batched import BatchedMazeEnv
 from ss_drl.envs.maze import load_maze
 from ss_drl.her import HindsightReplayBuffer
-from ss_drl.smart_start import CountModel
 from ss_drl.training.collector import MazeCollector
-from ss_drl.training.evaluation import greedy_rollout
+from ss_drl.training.greedy import greedy_rollout
 from ss_drl.training.trainer import Trainer
 
 pytestmark = pytest.mark.slow
@@ -78,10 +77,10 @@ def _offline_goal_reaching(k: int) -> float:
     maze = load_maze("easy_small")
     buffer = HindsightReplayBuffer(20_000, 1, cfg.agent.batch_size, "future", k)
     agent = DQNAgent(cfg.agent, maze, buffer)
-    agent.set_epsilon(1.0)
-    collector = MazeCollector(BatchedMazeEnv(maze, 1, max_steps=100), agent, CountModel(maze.n_cells), None, 3000)
-    batch, _ = collector.rollout()
-    buffer.extend(batch)
+    agent.epsilon = 1.0
+    collector = MazeCollector(BatchedMazeEnv(maze, 1, max_steps=100), agent, None, 3000)
+    while collector.env_steps < 3000:  # a batch ends with its episode
+        agent.store(collector.rollout()[0])
     for _ in range(1500):
         agent.update()
     rng = np.random.default_rng(0)

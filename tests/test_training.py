@@ -48,6 +48,8 @@ def _run_collector(maze: str, steps: int, num_envs: int = 1, eta: float = 1.0, g
     batches, episodes = [], []
     while collector.env_steps < steps:
         batch, finished = collector.rollout()
+        nxt = batch["next"]
+        trainer.counts.update(batch["observation"], batch["action"], nxt["observation"], nxt["reward"])  # as the loop
         batches.append(batch)
         episodes += finished
     return trainer, torch.cat(batches), episodes

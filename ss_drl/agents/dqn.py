@@ -1,4 +1,4 @@
-"""Goal-conditioned DQN: Q(s||g, a) with separate state and goal embeddings, TorchRL's DQNLoss and a target network."""
+"""Goal-conditioned DQN: Q(s||g, a) with separate state and goal embeddings, a TorchRL loss and a target network."""
 
 from __future__ import annotations
 
@@ -6,15 +6,13 @@ import copy
 import warnings
 
 import torch
-from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictModule
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from torch import nn
-from torchrl.data import Categorical
-from torchrl.modules import QValueActor
-from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
+from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 from torchrl.objectives.utils import distance_loss
 
 from ss_drl.envs.maze import Maze
+from ss_drl.ops import epsilon_greedy
 from ss_drl.smart_start.selection import goal_q_values
 
 
@@ -76,89 +74,113 @@ class GoalQNetwork(nn.Module):
         return self.value(h) + adv - adv.mean(dim=-1, keepdim=True)
 
 
-class GoalDQNLoss(DQNLoss):
-    """TorchRL's ``DQNLoss`` for a :class:`GoalQNetwork`, with a lean forward.
+class _BoundTarget:
+    """The target network: a copy of the Q-network whose tensors *are* the loss's ``target_value_network_params``.
 
-    Same parameters, target parameters, value estimator (TD(0), ``gamma``), double-DQN rule, loss function and mean
-    reduction as ``DQNLoss``, so ``HardUpdate``/``SoftUpdate``, ``state_dict`` and checkpoints are TorchRL's. Only
-    :meth:`forward` differs: ``DQNLoss.forward`` swaps functional parameters into the actor and builds tensordicts
-    for each of its three network passes, which on a CPU costs several times the passes themselves (see
-    ``tests/test_dqn.py`` for the equality with ``DQNLoss.forward``, and ``scripts/benchmark.py --section train``).
-    Here the online network is called directly (its parameters are the loss's ``value_network_params``) and the
-    target network is a copy of it whose tensors *are* ``target_value_network_params``: TorchRL's target updaters
-    write into them in place. No ``td_error`` is written (the HER buffer samples uniformly).
-
-    ``advantage_learning = alpha > 0`` adds the advantage-learning term to the target (``alpha = 0``: DQNLoss).
-    With 0/1 rewards and gamma < 1 the values of neighbouring actions differ by ~(1 - gamma) gamma^d, a few
-    thousandths far from the goal, less than the network's error; the term multiplies those gaps by 1 / (1 - alpha).
+    ``TensorDictParams.to_module`` binds them once, so TorchRL's ``HardUpdate``/``SoftUpdate``, which write the
+    target parameters in place, move this network too, and calling it costs one plain forward pass. It is not an
+    ``nn.Module`` attribute of the loss because its tensors are already registered there, as the target parameters.
     """
 
-    def __init__(self, actor: QValueActor, q_network: GoalQNetwork, advantage_learning: float = 0.0, **kwargs):
-        super().__init__(actor, delay_value=True, **kwargs)
+    def __init__(self, q_network: GoalQNetwork, target_params: TensorDictParams):
+        self.network = copy.deepcopy(q_network).requires_grad_(False)
+        target_params.to_module(self.network)
+
+    def __call__(self, observation: torch.Tensor, desired_goal: torch.Tensor) -> torch.Tensor:
+        return self.network(observation, desired_goal)
+
+
+class GoalDQNLoss(LossModule):
+    """The DQN loss of a :class:`GoalQNetwork`: TD(0) target from a target network, optional double DQN.
+
+    What is TorchRL's: the :class:`~torchrl.objectives.LossModule` base and its ``convert_to_functional``, which
+    makes the network's parameters ``value_network_params`` and a detached copy ``target_value_network_params``,
+    so that ``HardUpdate``/``SoftUpdate``, ``parameters()`` and ``state_dict()`` are TorchRL's; and
+    ``distance_loss`` (``l2``/``smooth_l1``) with mean reduction. What is ours: :meth:`forward`. For the same
+    parameters it computes what ``torchrl.objectives.DQNLoss`` computes (``tests/test_dqn.py`` checks the loss
+    and its gradients against ``DQNLoss.forward``), but calls the networks directly: ``DQNLoss`` swaps functional
+    parameters into a ``QValueActor`` and builds tensordicts for each of its network passes, which on a CPU costs
+    several times the passes themselves (``scripts/benchmark.py --section train``). No ``td_error`` is written
+    (the HER buffer samples uniformly).
+
+    ``advantage_learning = alpha > 0`` adds the advantage-learning term to the target (``alpha = 0``: DQN).
+    With 0/1 rewards and gamma < 1 the values of neighbouring actions differ by ~(1 - gamma) gamma^d, a few
+    thousandths far from the goal, less than the network's error; the term multiplies those gaps by 1 / (1 - alpha).
+
+    Its output also holds ``q_mean`` (mean Q of the batch's actions) and ``td_abs`` (mean |TD error|), detached.
+    """
+
+    value_network: GoalQNetwork
+    value_network_params: TensorDictParams
+    target_value_network_params: TensorDictParams
+
+    def __init__(
+        self,
+        q_network: GoalQNetwork,
+        gamma: float,
+        double_dqn: bool = True,
+        loss_function: str = "l2",
+        advantage_learning: float = 0.0,
+    ):
+        super().__init__()
+        self.convert_to_functional(q_network, "value_network", create_target_params=True)
+        self.gamma = float(gamma)
+        self.double_dqn = bool(double_dqn)
+        self.loss_function = loss_function
         self.advantage_learning = float(advantage_learning)
-        self.__dict__["q_network"] = q_network  # not registered: its parameters are already the loss's
-        target = copy.deepcopy(actor)
         with warnings.catch_warnings():
             # The updater (HardUpdate/SoftUpdate) is attached right after construction, by DQNAgent; reading the
             # target parameters before that makes TorchRL warn that nobody will update them.
             warnings.filterwarnings("ignore", message="No target network updater", category=UserWarning)
-            self.target_value_network_params.to_module(target)
-        self.__dict__["target_q_network"] = target.module[0].module
+            self.target_value_network = _BoundTarget(q_network, self.target_value_network_params)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        online, target_network = self.value_network, self.target_value_network
+        obs, goal = tensordict.get("observation"), tensordict.get("desired_goal")
         action = tensordict.get("action").unsqueeze(-1)
-        pred = self.q_network(tensordict.get("observation"), tensordict.get("desired_goal")).gather(-1, action)
+        pred = online(obs, goal).gather(-1, action)
         with torch.no_grad():
             next_obs, next_goal = tensordict.get(("next", "observation")), tensordict.get(("next", "desired_goal"))
-            next_q = self.target_q_network(next_obs, next_goal)
+            next_q = target_network(next_obs, next_goal)
             if self.double_dqn:
-                next_value = next_q.gather(-1, self.q_network(next_obs, next_goal).argmax(-1, keepdim=True))
+                next_value = next_q.gather(-1, online(next_obs, next_goal).argmax(-1, keepdim=True))
             else:
                 next_value = next_q.amax(-1, keepdim=True)
             not_terminal = (~tensordict.get(("next", "terminated"))).to(next_value.dtype)
-            gamma = self.value_estimator.gamma
-            target = tensordict.get(("next", "reward")) + gamma * not_terminal * next_value
+            target = tensordict.get(("next", "reward")) + self.gamma * not_terminal * next_value
             if self.advantage_learning:
                 # Advantage learning (Bellemare et al., 2016): the taken action's target drops by alpha times its
                 # gap to the best action, which widens every action gap by 1 / (1 - alpha) at the fixed point and
                 # leaves the greedy action's value as it is.
-                q_now = self.target_q_network(tensordict.get("observation"), tensordict.get("desired_goal"))
+                q_now = target_network(obs, goal)
                 target = target - self.advantage_learning * (q_now.amax(-1, keepdim=True) - q_now.gather(-1, action))
         loss = distance_loss(pred.squeeze(-1), target.squeeze(-1), self.loss_function).mean()
-        return TensorDict(loss=loss)
+        detached = pred.detach()
+        return TensorDict(loss=loss, q_mean=detached.mean(), td_abs=(detached - target).abs().mean())
 
 
 class DQNAgent:
-    """The goal-conditioned DQN learner and its epsilon-greedy collection policy.
+    """The goal-conditioned DQN learner and its epsilon-greedy collection policy (an :class:`~ss_drl.agents.Agent`).
 
-    Built from TorchRL parts: ``QValueActor`` (the greedy actor), ``DQNLoss`` (:class:`GoalDQNLoss`: TD(0) target
-    from a delayed target network, optional double DQN) and ``HardUpdate``/``SoftUpdate``; epsilon-greedy acting is
-    in :meth:`act`.
+    Built from TorchRL parts: the HER replay buffer is a TorchRL ``TensorDictReplayBuffer``, the loss a TorchRL
+    ``LossModule`` (:class:`GoalDQNLoss`), the target network moved by ``HardUpdate``/``SoftUpdate``.
     """
 
     def __init__(self, cfg, maze: Maze, replay_buffer, seed: int = 0):
         self.cfg = cfg
         self.maze = maze
         self.replay_buffer = replay_buffer
-        spec = Categorical(4, dtype=torch.int64)
         self.q_network = GoalQNetwork(maze, cfg.encoder, cfg.embed_dim, tuple(cfg.hidden), cfg.dueling)
-        self.actor = QValueActor(
-            TensorDictModule(self.q_network, in_keys=["observation", "desired_goal"], out_keys=["action_value"]),
-            in_keys=["observation", "desired_goal"],
-            spec=spec,
-            action_space="categorical",
-        )
         self.epsilon = float(cfg.eps_start)
         # The learner's reward is the env's minus this cost: 1 gives -1 per step and 0 on entering the goal.
         self.step_cost = float(cfg.get("step_cost", 0.0))
         self.loss = GoalDQNLoss(
-            self.actor,
             self.q_network,
-            advantage_learning=cfg.get("advantage_learning", 0.0),
-            loss_function=cfg.loss,
+            gamma=cfg.gamma,
             double_dqn=cfg.double_dqn,
+            loss_function=cfg.loss,
+            advantage_learning=cfg.get("advantage_learning", 0.0),
         )
-        self.loss.make_value_estimator(gamma=cfg.gamma)
         if cfg.target_update == "hard":
             self.target_updater = HardUpdate(self.loss, value_network_update_interval=cfg.target_update_interval)
         else:
@@ -168,8 +190,8 @@ class DQNAgent:
         self.learning_starts, self.batch_size = int(cfg.learning_starts), int(cfg.batch_size)
         self.train_freq, self.gradient_steps = int(cfg.train_freq), int(cfg.gradient_steps)
         self.grad_clip = float(cfg.grad_clip)
+        self.goal_cell = maze.goal_cell
         self.updates = 0
-        self.last_loss = float("nan")
 
     # --- acting ------------------------------------------------------------------------------------------------
     @torch.no_grad()
@@ -179,13 +201,7 @@ class DQNAgent:
         The raw network is called directly: at one env copy this runs every env step, and the TensorDict module
         wrappers would cost several times the forward pass itself.
         """
-        greedy = self.q_network(observation, desired_goal).argmax(dim=-1)
-        explore = torch.rand(observation.shape) < self.epsilon
-        return torch.where(explore, torch.randint(0, 4, observation.shape), greedy)
-
-    def set_epsilon(self, value: float) -> None:
-        """Set the exploration epsilon (the trainer anneals it linearly over ``eps_decay_steps`` env steps)."""
-        self.epsilon = float(value)
+        return epsilon_greedy(self.q_network(observation, desired_goal).argmax(dim=-1), self.epsilon)
 
     @torch.no_grad()
     def q_values(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
@@ -207,23 +223,29 @@ class DQNAgent:
         return ((1 - gamma) * q + c) / ((1 - gamma) + c * gamma)
 
     # --- learning ----------------------------------------------------------------------------------------------
-    def observe(self, batch: TensorDict, env_steps: int) -> None:
-        """Store a collected batch (T, N) and run the update rounds it is due."""
+    def store(self, batch: TensorDictBase) -> None:
+        """Write a collected (T, N) batch to the HER replay buffer."""
         self.replay_buffer.extend(batch)
-        if env_steps < self.learning_starts or len(self.replay_buffer) < self.batch_size:
-            return
-        rounds = max(1, round(batch.numel() / self.train_freq))
-        for _ in range(rounds * self.gradient_steps):
-            self.update()
 
-    def update(self) -> float:
+    def updates_due(self, env_steps: int, new_steps: int) -> int:
+        """``gradient_steps`` updates per ``train_freq`` env steps, from ``learning_starts`` on (and once the buffer
+        holds a batch); at the defaults, one update per env step."""
+        if env_steps < self.learning_starts or len(self.replay_buffer) < self.batch_size:
+            return 0
+        rounds = env_steps // self.train_freq - (env_steps - new_steps) // self.train_freq
+        return rounds * self.gradient_steps
+
+    def update(self) -> torch.Tensor:
+        """One gradient step on a HER-relabeled sample; returns :data:`~ss_drl.agents.UPDATE_METRICS`.
+
+        Nothing here reads a value back to the host: the loop checks the loss for NaN at its logging cadence.
+        """
         sample = self.replay_buffer.sample()
         if self.step_cost:
             reward = sample.get(("next", "reward"))
             sample.set(("next", "reward"), reward - self.step_cost)
-        loss = self.loss(sample)["loss"]
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"non-finite DQN loss ({float(loss)}) at update {self.updates}")
+        out = self.loss(sample)
+        loss = out.get("loss")
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if self.grad_clip > 0:
@@ -231,8 +253,9 @@ class DQNAgent:
         self.optimizer.step()
         self.target_updater.step()
         self.updates += 1
-        self.last_loss = float(loss.detach())
-        return self.last_loss
+        her_share = sample.get("relabeled").float().mean()
+        goal_share = (sample.get("desired_goal") == self.goal_cell).float().mean()
+        return torch.stack((loss.detach(), out.get("q_mean"), out.get("td_abs"), her_share, goal_share))
 
     # --- persistence -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -246,7 +269,10 @@ class DQNAgent:
         }
 
     def load_state_dict(self, state: dict) -> None:
-        self.loss.load_state_dict(state["loss"])
+        # Checkpoints written before the loss held the network itself (up to 92d551c) name its tensors through the
+        # QValueActor that wrapped it then.
+        loss_state = {k.replace("params.module.0.module.", "params."): v for k, v in state["loss"].items()}
+        self.loss.load_state_dict(loss_state)
         self.epsilon = state["epsilon"]
         self.optimizer.load_state_dict(state["optimizer"])
         self.updates = state["updates"]

@@ -1,9 +1,9 @@
 """Smart Start: the count model (:mod:`.counts`), UCB selection of S_ss (:mod:`.selection`), the value-iteration
-planner (:mod:`.planner`) and guided collection (:mod:`.policy`)."""
+planner (:mod:`.planner`) and the controller of guided collection (:mod:`.controller`)."""
 
+from ss_drl.smart_start.controller import SmartStart
 from ss_drl.smart_start.counts import CountModel
 from ss_drl.smart_start.planner import Plan, Planner
-from ss_drl.smart_start.policy import SmartStart
 from ss_drl.smart_start.selection import select_smart_start, ucb_scores
 
 __all__ = ["CountModel", "Plan", "Planner", "SmartStart", "select_smart_start", "ucb_scores"]

@@ -23,6 +23,7 @@ import dataclasses
 import numpy as np
 import torch
 
+from ss_drl.ops import manhattan, random_argmax
 from ss_drl.smart_start.counts import CountModel, ModelStructure
 
 
@@ -61,10 +62,7 @@ class Planner:
         cells = torch.arange(n_states)
         if self.theta == 0:
             return cells.unsqueeze(1) == targets.unsqueeze(0)
-        r, c = cells // self.width, cells % self.width
-        tr, tc = targets // self.width, targets % self.width
-        dist = (r.unsqueeze(1) - tr.unsqueeze(0)).abs() + (c.unsqueeze(1) - tc.unsqueeze(0)).abs()
-        return dist <= self.theta
+        return manhattan(cells.unsqueeze(1), targets.unsqueeze(0), self.width) <= self.theta
 
     def plan(self, model: CountModel, targets: torch.Tensor | int, generator: torch.Generator | None = None) -> Plan:
         """Plan towards each of ``targets`` (a state or a (B,) tensor of states) on the model's current counts."""
@@ -205,9 +203,7 @@ class Planner:
     @staticmethod
     def greedy(q: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """(B, S) argmax_a of q (S, A, B), ties broken uniformly at random."""
-        best = q.amax(dim=1, keepdim=True)
-        noise = torch.rand(q.shape, generator=generator, dtype=q.dtype)
-        return torch.where(q >= best, noise, -1.0).argmax(dim=1).T.contiguous()
+        return random_argmax(q, dim=1, generator=generator).T.contiguous()
 
 
 def _bfs(front: list[int], dist: list[int], preds: list[tuple[int, ...]], limit: int) -> int:

@@ -6,6 +6,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ss_drl.ops import random_argmax
 from ss_drl.smart_start.counts import CountModel
 
 
@@ -45,9 +46,7 @@ def select_smart_start(
     else:
         max_q = max_q_fn(states, goals)  # (B, n)
     scores = ucb_scores(max_q, counts.state_counts[states].unsqueeze(0), c_ss, w_q)
-    best = scores.amax(dim=1, keepdim=True)
-    noise = torch.rand(scores.shape, generator=generator, dtype=torch.float64)
-    return states[torch.where(scores >= best, noise, -1.0).argmax(dim=1)]
+    return states[random_argmax(scores, dim=1, generator=generator)]
 
 
 #: Rows (state, goal pairs) evaluated per block by :func:`goal_q_values`: a block's activations stay in cache.

@@ -1,9 +1,17 @@
-"""Collection: step the batched maze env with the agent's policy (Smart Start guiding where it applies).
+"""Collection: step the batched maze env, each episode beginning with Smart Start's guided phase where it applies.
 
-``MazeCollector.rollout()`` returns the next ``frames_per_batch`` transitions as a (T, N) tensordict, like a TorchRL
-collector, and keeps per-episode statistics. It is a plain loop rather than ``torchrl.collectors.Collector`` because
-Smart Start decides per copy at each episode start (selection and planning need the count model and the online
-network of that moment; the count model is brought up to date before each episode start), and because at one env
+``MazeCollector.rollout()`` returns the next batch of transitions as a (T, N) tensordict, like a TorchRL collector,
+and the episodes that finished in it. An episode has two phases:
+
+1. the **guided phase** (Smart Start): at the episode start the controller may choose S_ss and plan a route to it on
+   the count model; the copy follows the route until it arrives;
+2. the **epsilon-greedy phase**: the agent's epsilon-greedy policy acts for the rest of the episode.
+
+A batch ends after the step where any episode ends, so the count model, which the training loop updates after each
+batch, is current at every episode start, where Smart Start reads it.
+
+It is a plain loop rather than ``torchrl.collectors.Collector`` because Smart Start decides per copy at each episode
+start (selection and planning need the count model and the online network of that moment), and because at one env
 copy the loop's per-step cost is what bounds training speed.
 """
 
@@ -15,8 +23,7 @@ import torch
 from tensordict import TensorDict
 
 from ss_drl.envs.batched import BatchedMazeEnv
-from ss_drl.smart_start.counts import CountModel
-from ss_drl.smart_start.policy import SmartStart
+from ss_drl.smart_start.controller import SmartStart
 
 
 @dataclasses.dataclass
@@ -26,7 +33,7 @@ class Episode:
     env_id: int
     env_steps: int
     length: int
-    ret: float
+    episode_return: float  # undiscounted: 1 if the episode entered G, else 0
     success: bool
     smart_start: bool
     ss_target: int  # -1: none
@@ -40,47 +47,35 @@ class MazeCollector:
 
     Args:
         env: the batched env.
-        agent: has ``act(observation, desired_goal)`` (epsilon-greedy actions) and ``q_values(states, goals)``.
-        counts: the count model, updated with every transition.
+        agent: an :class:`~ss_drl.agents.Agent` (its ``act`` and, for Smart Start's UCB, ``q_values``).
         smart_start: the Smart Start controller, or None.
-        frames_per_batch: transitions per batch (a multiple of the number of copies).
+        frames_per_batch: the most transitions per batch (a multiple of the number of copies).
     """
 
-    def __init__(
-        self,
-        env: BatchedMazeEnv,
-        agent,
-        counts: CountModel,
-        smart_start: SmartStart | None,
-        frames_per_batch: int,
-    ):
-        self.env, self.agent, self.counts, self.smart_start = env, agent, counts, smart_start
+    def __init__(self, env: BatchedMazeEnv, agent, smart_start: SmartStart | None, frames_per_batch: int):
+        self.env, self.agent, self.smart_start = env, agent, smart_start
         self.num_envs = env.num_envs
         self.steps_per_batch = max(1, frames_per_batch // self.num_envs)
         self.env_steps = 0  # transitions collected (all copies)
         self.ep_length = torch.zeros(self.num_envs, dtype=torch.int64)
         self.ep_return = torch.zeros(self.num_envs, dtype=torch.float32)
+        self.starting = torch.zeros(self.num_envs, dtype=torch.bool)  # copies whose episode starts at the next step
         self._td: TensorDict | None = None
 
     @property
     def frames_per_batch(self) -> int:
         return self.steps_per_batch * self.num_envs
 
-    def _begin(self, copies: torch.Tensor) -> None:
-        self.ep_length[copies] = 0
-        self.ep_return[copies] = 0
-        if self.smart_start is not None:
-            obs = self._td.get("observation")
-            self.smart_start.start_episodes(copies, obs, self._td.get("desired_goal"), self.agent.q_values)
-
     def rollout(self, max_frames: int | None = None) -> tuple[TensorDict, list[Episode]]:
         """The next (T, N) batch of transitions and the episodes that finished in it.
 
-        ``max_frames`` shortens the batch (to whole env steps of all copies), so a run ends at its budget.
+        The batch holds ``frames_per_batch`` transitions, or fewer when an episode ends first; ``max_frames`` caps
+        it (to whole env steps of all copies), so a run ends at its budget.
         """
         if self._td is None:
             self._td = self.env.reset()
-            self._begin(torch.ones(self.num_envs, dtype=torch.bool))
+            self.starting[:] = True
+        self._start_episodes()
         t_max, n = self.steps_per_batch, self.num_envs
         if max_frames is not None:
             t_max = max(1, min(t_max, -(-max_frames // n)))
@@ -92,60 +87,69 @@ class MazeCollector:
         terminated = torch.empty(t_max, n, 1, dtype=torch.bool)
         truncated = torch.empty(t_max, n, 1, dtype=torch.bool)
         finished: list[Episode] = []
-        ss = self.smart_start
-        counted = 0  # steps of this batch already in the count model
-
-        def count_until(stop: int) -> None:
-            # The count model is updated in blocks of steps; Smart Start only reads it at episode starts, so the
-            # steps are counted before every episode start and at the end of the batch.
-            nonlocal counted
-            if stop > counted:
-                block = slice(counted, stop)
-                self.counts.update(obs[block], action[block], next_obs[block], reward[block])
-                counted = stop
-
-        for t in range(t_max):
+        steps = 0
+        while steps < t_max and not finished:
             td = self._td
             cells, goals = td.get("observation"), td.get("desired_goal")
-            guided = None if ss is None else ss.active.clone()
-            if guided is not None and bool(guided.all()):
-                act = torch.zeros_like(cells)  # every copy follows its plan: the network's actions would be replaced
-            else:
-                act = self.agent.act(cells, goals)
-            if guided is not None:
-                act = ss.guide(cells, act)
+            act, guided = self._act(cells, goals)
             td.set("action", act)
             out, self._td = self.env.step_and_maybe_reset(td)
             nxt = out.get("next")
             new_cells, r, done = nxt.get("observation"), nxt.get("reward"), nxt.get("done").squeeze(-1)
+            t = steps
             obs[t], goal[t], action[t], next_obs[t], reward[t] = cells, goals, act, new_cells, r
             terminated[t], truncated[t] = nxt.get("terminated"), nxt.get("truncated")
+            steps += 1
             self.env_steps += n
             self.ep_length += 1
             self.ep_return += r.squeeze(-1)
-            if ss is not None:
-                ss.after_step(guided, new_cells, done)
+            if guided is not None:
+                self.smart_start.after_step(guided, new_cells, done)
             if bool(done.any()):
-                count_until(t + 1)
-                finished += self._finish(done, terminated[t].squeeze(-1))
-        count_until(t_max)
+                finished = self._finish(done, terminated[t].squeeze(-1))
         batch = TensorDict(
             {
-                "observation": obs,
-                "desired_goal": goal,
-                "action": action,
+                "observation": obs[:steps],
+                "desired_goal": goal[:steps],
+                "action": action[:steps],
                 "next": {
-                    "observation": next_obs,
-                    "desired_goal": goal,  # fixed within an episode
-                    "reward": reward,
-                    "terminated": terminated,
-                    "truncated": truncated,
-                    "done": terminated | truncated,
+                    "observation": next_obs[:steps],
+                    "desired_goal": goal[:steps],  # fixed within an episode
+                    "reward": reward[:steps],
+                    "terminated": terminated[:steps],
+                    "truncated": truncated[:steps],
+                    "done": terminated[:steps] | truncated[:steps],
                 },
             },
-            batch_size=(t_max, n),
+            batch_size=(steps, n),
         )
         return batch, finished
+
+    def _act(self, cells: torch.Tensor, goals: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Each copy's action: the planned one in the guided phase, the agent's epsilon-greedy one after it.
+
+        Also returns the guided-phase mask before the step (None without Smart Start).
+        """
+        ss = self.smart_start
+        if ss is None:
+            return self.agent.act(cells, goals), None
+        guided = ss.active.clone()
+        if bool(guided.all()):
+            # Guided phase in every copy: the network's actions would all be replaced, so it is not evaluated.
+            return ss.guide(cells, torch.zeros_like(cells)), guided
+        return ss.guide(cells, self.agent.act(cells, goals)), guided
+
+    def _start_episodes(self) -> None:
+        """Begin the episodes of the copies that just reset: Smart Start decides and plans their guided phases."""
+        if not bool(self.starting.any()):
+            return
+        copies = self.starting.clone()
+        self.starting[:] = False
+        self.ep_length[copies] = 0
+        self.ep_return[copies] = 0
+        if self.smart_start is not None:
+            obs, goals = self._td.get("observation"), self._td.get("desired_goal")
+            self.smart_start.start_episodes(copies, obs, goals, self.agent.q_values)
 
     def _finish(self, done: torch.Tensor, success: torch.Tensor) -> list[Episode]:
         ss = self.smart_start
@@ -157,7 +161,7 @@ class MazeCollector:
                     env_id=e,
                     env_steps=self.env_steps,
                     length=int(self.ep_length[e]),
-                    ret=float(self.ep_return[e]),
+                    episode_return=float(self.ep_return[e]),
                     success=bool(success[e]),
                     smart_start=used,
                     ss_target=int(ss.target[e]) if used else -1,
@@ -168,7 +172,7 @@ class MazeCollector:
             )
         if ss is not None:
             ss.end_episodes(done)
-        self._begin(done)
+        self.starting |= done
         return episodes
 
     def state_dict(self) -> dict:
@@ -176,6 +180,7 @@ class MazeCollector:
             "env_steps": self.env_steps,
             "ep_length": self.ep_length.clone(),
             "ep_return": self.ep_return.clone(),
+            "starting": self.starting.clone(),
             "td": None if self._td is None else self._td.select("observation", "desired_goal").clone(),
             "env_cell": self.env.cell.clone(),
             "env_steps_in_episode": self.env.step_count.clone(),
@@ -184,5 +189,7 @@ class MazeCollector:
     def load_state_dict(self, state: dict) -> None:
         self.env_steps = state["env_steps"]
         self.ep_length, self.ep_return = state["ep_length"].clone(), state["ep_return"].clone()
+        # Checkpoints up to 92d551c started each episode inside the batch that ended the previous one.
+        self.starting = state.get("starting", torch.zeros(self.num_envs, dtype=torch.bool)).clone()
         self._td = state["td"]
         self.env.set_state(state["env_cell"], state["env_steps_in_episode"])

@@ -85,6 +85,7 @@ def validate_config(cfg: DictConfig) -> None:
     _number(cfg, "trainer.frames_per_batch", low=1, integer=True)
     _number(cfg, "trainer.eval_interval", low=1, integer=True)
     _number(cfg, "trainer.checkpoint_interval", low=1, integer=True)
+    _number(cfg, "trainer.log_interval", low=1, integer=True)
     _number(cfg, "trainer.torch_threads", low=1, integer=True)
     resume = _get(cfg, "trainer.resume")
     if not isinstance(resume, (bool, str)) and resume is not None:

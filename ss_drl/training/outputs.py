@@ -4,6 +4,7 @@ These are a contract: plots, sweeps and external scripts parse them.
 
 * ``episodes.csv``: one row per finished training episode (``EPISODE_COLUMNS``).
 * ``eval.csv``: one row per greedy evaluation (``EVAL_COLUMNS``).
+* ``train.csv``: learning metrics every ``trainer.log_interval`` updates (``TRAIN_COLUMNS``).
 * ``summary.json``: run-level numbers (``SUMMARY_KEYS``) and the resolved config.
 """
 
@@ -19,6 +20,7 @@ from pathlib import Path
 
 EPISODES_FILE = "episodes.csv"
 EVAL_FILE = "eval.csv"
+TRAIN_FILE = "train.csv"
 SUMMARY_FILE = "summary.json"
 CHECKPOINT_FILE = "checkpoint.pt"
 FAILED_FILE = "FAILED"  # written by a sweep job that failed (its message or traceback)
@@ -43,6 +45,19 @@ EVAL_COLUMNS = (
     "episode",  # finished training episodes at evaluation time
     "eval_length",  # steps of the greedy episode from S (max_steps when it fails)
     "eval_success",  # 1 if the greedy episode reached G
+)
+
+TRAIN_COLUMNS = (
+    "env_steps",  # cumulative env steps when the row was written
+    "updates",  # learning updates so far (tabular: one per transition)
+    "loss",  # mean TD loss over the updates since the previous row
+    "q_mean",  # mean Q(s||g, a) of the sampled batches' actions, on the learner's reward scale
+    "td_abs",  # mean |TD error| of the sampled batches
+    "her_share",  # mean fraction of each batch whose goal HER relabeled
+    "goal_share",  # mean fraction of each batch whose goal is the maze's goal G
+    "epsilon",  # exploration epsilon
+    "updates_per_s",  # learning updates per second since the previous row
+    "wall_s",  # seconds since the run started
 )
 
 SUMMARY_KEYS = (
@@ -100,22 +115,33 @@ class RunLogger:
     W&B never blocks training: if wandb is missing or its init fails, the run goes on with CSV and one warning.
     """
 
-    def __init__(self, run_dir: Path, cfg, resolved_config: dict, resume_rows: tuple[int, int] | None = None):
+    def __init__(self, run_dir: Path, cfg, resolved_config: dict, resume_rows: tuple[int, ...] | None = None):
+        """``resume_rows``: the rows of episodes.csv, eval.csv and train.csv to keep (those the checkpoint had
+        written); None starts the files anew."""
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.episodes_path = self.run_dir / EPISODES_FILE
         self.eval_path = self.run_dir / EVAL_FILE
+        self.train_path = self.run_dir / TRAIN_FILE
+        paths = (self.episodes_path, self.eval_path, self.train_path)
         if resume_rows is None:
-            for path in (self.episodes_path, self.eval_path):
+            for path in paths:
                 path.unlink(missing_ok=True)
         else:
-            truncate_csv(self.episodes_path, resume_rows[0])
-            truncate_csv(self.eval_path, resume_rows[1])
+            for path, rows in zip(paths, resume_rows):
+                truncate_csv(path, rows)
         self._episodes = self._open(self.episodes_path, EPISODE_COLUMNS)
         self._eval = self._open(self.eval_path, EVAL_COLUMNS)
+        self._train = self._open(self.train_path, TRAIN_COLUMNS)
         self.episode_rows = _csv_rows(self.episodes_path)
         self.eval_rows = _csv_rows(self.eval_path)
+        self.train_rows = _csv_rows(self.train_path)
         self.wandb = self._init_wandb(cfg, resolved_config)
+
+    @property
+    def rows(self) -> tuple[int, int, int]:
+        """Rows written to episodes.csv, eval.csv and train.csv (kept in checkpoints, for resuming)."""
+        return self.episode_rows, self.eval_rows, self.train_rows
 
     @staticmethod
     def _open(path: Path, columns: tuple[str, ...]):
@@ -169,6 +195,10 @@ class RunLogger:
         self._eval[0].flush()
         self.eval_rows += 1
 
+    def log_train(self, row: dict) -> None:
+        self._train[1].writerow([row[c] for c in TRAIN_COLUMNS])
+        self.train_rows += 1
+
     def log_metrics(self, metrics: dict, step: int) -> None:
         if self.wandb is not None:
             clean = {k: v for k, v in metrics.items() if not (isinstance(v, float) and math.isnan(v))}
@@ -181,13 +211,13 @@ class RunLogger:
             self.wandb.log({key: wandb.Image(str(path))}, step=step)
 
     def flush(self) -> None:
-        self._episodes[0].flush()
-        self._eval[0].flush()
+        for handle, _ in (self._episodes, self._eval, self._train):
+            handle.flush()
 
     def close(self, summary: dict | None = None) -> None:
         self.flush()
-        self._episodes[0].close()
-        self._eval[0].close()
+        for handle, _ in (self._episodes, self._eval, self._train):
+            handle.close()
         if self.wandb is not None:
             if summary:
                 for key, value in summary.items():

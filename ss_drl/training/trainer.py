@@ -1,17 +1,21 @@
-"""The training loop: collect, count, store, update, evaluate, log, checkpoint.
+"""The training loop: collect, count, store, update, log, evaluate, checkpoint.
 
-Read top to bottom, one iteration is:
+One iteration of :meth:`Trainer.train`, read top to bottom:
 
-1. ``collector.rollout()``: ``frames_per_batch`` env steps with the epsilon-greedy policy; at each episode start
-   Smart Start may choose S_ss and plan a route to it, which the copy follows first. The count model sees every step.
-2. ``agent.observe(batch)``: the DQN stores the batch in the HER replay buffer and runs its due updates
-   (the tabular agent runs its Q-learning updates on the batch).
-3. Episode rows go to episodes.csv (and W&B); every ``eval_interval`` steps a greedy episode from S goes to eval.csv.
-4. Every ``checkpoint_interval`` steps an atomic checkpoint is written.
+1. **Collect**: ``collector.rollout()`` steps the env for up to ``frames_per_batch`` transitions. An episode starts
+   with Smart Start's guided phase where it applies (S_ss chosen by UCB, a route planned on the count model), then
+   the agent's epsilon-greedy phase takes over. A batch ends where an episode ends.
+2. **Count model**: every transition of the batch is counted (Smart Start reads the counts at the next episode start).
+3. **Replay buffer**: ``agent.store(batch)`` (the DQN's HER buffer; the table queues the batch).
+4. **Updates**: the ``agent.updates_due(...)`` learning updates; each returns its metrics as a tensor (no host sync).
+5. **Log**: every ``log_interval`` updates a row of train.csv and W&B ``train/`` (the loss is checked for NaN then);
+   every finished episode a row of episodes.csv; every ``eval_interval`` env steps a greedy episode from S to
+   eval.csv; every ``checkpoint_interval`` env steps an atomic checkpoint.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import random
 import signal
 import time
@@ -22,18 +26,70 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from ss_drl.agents import UPDATE_METRICS, Agent
 from ss_drl.envs.batched import BatchedMazeEnv
 from ss_drl.envs.maze import Maze, load_maze
+from ss_drl.ops import linear_epsilon
 from ss_drl.smart_start import CountModel, Planner, SmartStart
 from ss_drl.training import checkpoint as ckpt
-from ss_drl.training.collector import MazeCollector
+from ss_drl.training.collector import Episode, MazeCollector
 from ss_drl.training.config import validate_config
-from ss_drl.training.evaluation import greedy_rollout
+from ss_drl.training.figures import plot_visit_counts
+from ss_drl.training.greedy import greedy_rollout
 from ss_drl.training.outputs import SUMMARY_FILE, RunLogger, progress_bar, write_json_atomic
 
 
 class TrainingInterrupted(Exception):
     """SIGINT/SIGTERM arrived; a final checkpoint was written."""
+
+
+@dataclasses.dataclass
+class FirstGoal:
+    """When G was first reached in training."""
+
+    env_step: int | None = None
+    episode: int | None = None
+
+
+@dataclasses.dataclass
+class Evaluation:
+    """One greedy evaluation episode from S."""
+
+    env_steps: int  # env steps of training when it ran
+    length: int  # its length (max_steps when it failed)
+    success: bool
+    accuracy: float  # greedy accuracy over the maze (see :func:`~ss_drl.training.greedy.greedy_accuracy`)
+
+
+class UpdateLog:
+    """The metrics of the updates since the last train.csv row, kept as tensors until the row is written."""
+
+    def __init__(self, first_update: int = 0):
+        self.rows: list[torch.Tensor] = []
+        self.first_update = first_update  # update count before the first row held here
+        self.start = time.perf_counter()
+
+    def add(self, metrics: torch.Tensor) -> None:
+        self.rows.append(metrics)
+
+    def drain(self, updates: int) -> tuple[dict[str, float], float]:
+        """Mean of each metric over the held updates and their updates/s; then starts anew at ``updates``.
+
+        One host sync. A non-finite loss raises ``FloatingPointError`` naming the first update that had it.
+        """
+        values = torch.stack(self.rows).double()
+        finite = torch.isfinite(values[:, 0])
+        if not bool(finite.all()):
+            bad = int((~finite).nonzero()[0, 0])
+            per_row = (updates - self.first_update) / len(self.rows)  # the table's rows hold many updates each
+            raise FloatingPointError(
+                f"non-finite DQN loss ({float(values[bad, 0])}) at update {self.first_update + int(bad * per_row)}"
+            )
+        means = dict(zip(UPDATE_METRICS, values.mean(dim=0).tolist()))
+        now = time.perf_counter()
+        rate = (updates - self.first_update) / max(now - self.start, 1e-9)
+        self.rows, self.first_update, self.start = [], updates, now
+        return means, rate
 
 
 def seed_everything(seed: int) -> None:
@@ -46,7 +102,7 @@ def make_maze(env_cfg) -> Maze:
     return load_maze(env_cfg.layout if env_cfg.layout else env_cfg.preset)
 
 
-def make_agent(cfg: DictConfig, maze: Maze, seed: int):
+def make_agent(cfg: DictConfig, maze: Maze, seed: int) -> Agent:
     """The learner named by ``agent.name``: ``dqn`` (with its HER replay buffer) or ``tabular``."""
     if cfg.agent.name == "tabular":
         from ss_drl.agents.tabular import TabularQAgent
@@ -91,15 +147,14 @@ class Trainer:
         self.agent = make_agent(cfg, self.maze, int(cfg.seed))
         self.counts = CountModel(self.maze.n_cells)
         self.smart_start = make_smart_start(cfg, self.maze, self.counts, int(cfg.seed))
-        self.collector = MazeCollector(
-            self.env, self.agent, self.counts, self.smart_start, cfg.trainer.frames_per_batch
-        )
+        self.collector = MazeCollector(self.env, self.agent, self.smart_start, cfg.trainer.frames_per_batch)
         self.episodes = 0
-        self.first_goal = (None, None)  # (env step, episode) of the first success
-        self.last_eval = None
-        self.last_accuracy = None  # greedy accuracy at the last evaluation
+        self.first_goal = FirstGoal()
+        self.last_eval: Evaluation | None = None
         self.next_eval = 0
         self.next_checkpoint = cfg.trainer.checkpoint_interval
+        self.log_interval = int(cfg.trainer.log_interval)
+        self.next_log = self.log_interval  # update count at which the next train.csv row is written
         self.wall_before = 0.0  # wall time of earlier sessions of a resumed run
         self.ss_targets: list[int] = []
         self._recent: deque[bool] = deque(maxlen=100)  # successes of the latest episodes, for the progress bar
@@ -112,34 +167,52 @@ class Trainer:
 
     # --- the loop ----------------------------------------------------------------------------------------------
     def train(self) -> dict:
-        cfg = self.cfg
+        cfg, agent, collector = self.cfg, self.agent, self.collector
         total = int(cfg.trainer.total_env_steps)
+        eps = cfg.agent
         start = time.perf_counter()
         self.start_time = start - self.wall_before
-        bar = progress_bar(total, initial=self.collector.env_steps)
+        update_log = UpdateLog(agent.updates)
+        bar = progress_bar(total, initial=collector.env_steps)
         handlers = self._install_signal_handlers()
         try:
-            while self.collector.env_steps < total:
-                batch, finished = self.collector.rollout(max_frames=total - self.collector.env_steps)
-                self._set_epsilon()
-                self.agent.observe(batch, self.collector.env_steps)
+            while collector.env_steps < total:
+                # 1. Collect: guided phase (Smart Start) at episode starts, then epsilon-greedy.
+                agent.epsilon = linear_epsilon(collector.env_steps, eps.eps_start, eps.eps_end, eps.eps_decay_steps)
+                batch, finished = collector.rollout(max_frames=total - collector.env_steps)
+                # 2. Count model.
+                self.counts.update(
+                    batch.get("observation"),
+                    batch.get("action"),
+                    batch.get(("next", "observation")),
+                    batch.get(("next", "reward")),
+                )
+                # 3. Replay buffer.
+                agent.store(batch)
+                # 4. Updates.
+                for _ in range(agent.updates_due(collector.env_steps, batch.numel())):
+                    update_log.add(agent.update())
+                    # 5. Log: learning metrics every log_interval updates.
+                    if agent.updates >= self.next_log:
+                        self._log_updates(update_log)
+                # 5. Log: episodes, evaluation, checkpoint.
                 for episode in finished:
                     self._log_episode(episode)
-                if self.collector.env_steps >= self.next_eval:
+                if collector.env_steps >= self.next_eval:
                     self.evaluate()
-                if self.collector.env_steps >= self.next_checkpoint:
+                if collector.env_steps >= self.next_checkpoint:
                     self.save_checkpoint()
                     self.next_checkpoint += cfg.trainer.checkpoint_interval
-                bar.update(batch.numel())
-                if self.episodes and bar.n % 1000 < batch.numel():
-                    bar.set_postfix(episodes=self.episodes, success=f"{self._recent_success():.2f}")
+                self._show_progress(bar, batch.numel())
                 if self._stop_signal is not None:
                     self.save_checkpoint()
                     raise TrainingInterrupted(
-                        f"{self._stop_signal} received: checkpoint written at {self.collector.env_steps} env steps "
+                        f"{self._stop_signal} received: checkpoint written at {collector.env_steps} env steps "
                         f"in {self.run_dir}; resume with trainer.resume=true"
                     )
-            if self.last_eval is None or self.last_eval[0] != self.collector.env_steps:
+            if update_log.rows:
+                self._log_updates(update_log)
+            if self.last_eval is None or self.last_eval.env_steps != collector.env_steps:
                 self.evaluate()
             summary = self.summary(completed=True, wall=time.perf_counter() - self.start_time)
             self.save_checkpoint()
@@ -154,16 +227,30 @@ class Trainer:
             bar.close()
             self._restore_signal_handlers(handlers)
 
-    def _set_epsilon(self) -> None:
-        agent = self.cfg.agent
-        frac = min(1.0, self.collector.env_steps / max(1, agent.eps_decay_steps))
-        self.agent.set_epsilon(agent.eps_start + frac * (agent.eps_end - agent.eps_start))
-
     # --- logging -----------------------------------------------------------------------------------------------
-    def _log_episode(self, episode) -> None:
+    def _log_updates(self, update_log: UpdateLog) -> None:
+        """A train.csv row and W&B ``train/`` metrics: the means over the updates since the last row."""
+        updates = self.agent.updates
+        means, rate = update_log.drain(updates)
+        row = {
+            "env_steps": self.collector.env_steps,
+            "updates": updates,
+            **{k: round(v, 6) for k, v in means.items()},
+            "epsilon": round(self.agent.epsilon, 6),
+            "updates_per_s": round(rate, 1),
+            "wall_s": round(time.perf_counter() - self.start_time, 3),
+        }
+        self.logger.log_train(row)
+        metrics = {f"train/{k}": v for k, v in means.items()}
+        metrics.update({"train/epsilon": self.agent.epsilon, "train/updates": updates, "time/updates_per_s": rate})
+        self.logger.log_metrics(metrics, step=self.collector.env_steps)
+        while self.next_log <= updates:
+            self.next_log += self.log_interval
+
+    def _log_episode(self, episode: Episode) -> None:
         self.episodes += 1
-        if episode.success and self.first_goal[0] is None:
-            self.first_goal = (episode.env_steps, self.episodes)
+        if episode.success and self.first_goal.env_step is None:
+            self.first_goal = FirstGoal(episode.env_steps, self.episodes)
         if episode.smart_start:
             self.ss_targets.append(episode.ss_target)
         target = "" if episode.ss_target < 0 else "{}:{}".format(*self.maze.pos(episode.ss_target))
@@ -172,7 +259,7 @@ class Trainer:
             "env_id": episode.env_id,
             "env_steps": episode.env_steps,
             "length": episode.length,
-            "return": episode.ret,
+            "return": episode.episode_return,
             "success": int(episode.success),
             "smart_start": int(episode.smart_start),
             "ss_target": target,
@@ -186,22 +273,23 @@ class Trainer:
         self.logger.log_metrics(
             {
                 "train/episode": self.episodes,
-                "train/return": episode.ret,
+                "train/return": episode.episode_return,
                 "train/length": episode.length,
                 "train/success": int(episode.success),
                 "train/smart_start": int(episode.smart_start),
                 "train/ss_steps": episode.ss_steps,
-                "train/epsilon": self.agent.epsilon,
-                "train/loss": getattr(self.agent, "last_loss", float("nan")),
                 "time/env_steps_per_s": self.collector.env_steps / max(time.perf_counter() - self.start_time, 1e-9),
             },
             step=episode.env_steps,
         )
 
-    def _recent_success(self) -> float:
-        return sum(self._recent) / max(len(self._recent), 1)
+    def _show_progress(self, bar, new_steps: int) -> None:
+        bar.update(new_steps)
+        if self.episodes and bar.n % 1000 < new_steps:
+            success = sum(self._recent) / max(len(self._recent), 1)
+            bar.set_postfix(episodes=self.episodes, success=f"{success:.2f}")
 
-    def evaluate(self) -> tuple[int, bool]:
+    def evaluate(self) -> Evaluation:
         rollout = greedy_rollout(self.agent, self.maze, self.cfg.env.max_steps)
         steps = self.collector.env_steps
         self.logger.log_eval(
@@ -221,30 +309,29 @@ class Trainer:
             },
             step=steps,
         )
-        self.last_eval = (steps, rollout.length, rollout.success)
-        self.last_accuracy = rollout.accuracy
+        self.last_eval = Evaluation(steps, rollout.length, rollout.success, rollout.accuracy)
         while self.next_eval <= steps:
             self.next_eval += self.cfg.trainer.eval_interval
-        return rollout.length, rollout.success
+        return self.last_eval
 
     def summary(self, completed: bool, wall: float) -> dict:
-        updates = getattr(self.agent, "updates", 0)
+        last = self.last_eval
         return {
             "experiment": self.cfg.experiment,
             "method": self.cfg.method,
             "maze": self.maze.name,
             "seed": int(self.cfg.seed),
             "completed": completed,
-            "first_goal_env_step": self.first_goal[0],
-            "first_goal_episode": self.first_goal[1],
+            "first_goal_env_step": self.first_goal.env_step,
+            "first_goal_episode": self.first_goal.episode,
             "episodes": self.episodes,
             "env_steps": self.collector.env_steps,
-            "final_eval_length": None if self.last_eval is None else self.last_eval[1],
-            "final_greedy_accuracy": None if self.last_accuracy is None else round(self.last_accuracy, 4),
+            "final_eval_length": None if last is None else last.length,
+            "final_greedy_accuracy": None if last is None else round(last.accuracy, 4),
             "optimal_length": self.optimal_length,
             "wall_s": round(wall, 3),
             "env_steps_per_s": round(self.collector.env_steps / max(wall, 1e-9), 1),
-            "updates_per_s": round(updates / max(wall, 1e-9), 1),
+            "updates_per_s": round(self.agent.updates / max(wall, 1e-9), 1),
             "smart_start_decisions": 0 if self.smart_start is None else self.smart_start.decisions,
             "config": self.resolved,
         }
@@ -252,8 +339,6 @@ class Trainer:
     def _write_end_of_run_figures(self) -> None:
         if self.smart_start is None:
             return
-        from ss_drl.analysis.figures import plot_visit_counts
-
         path = self.run_dir / "smart_start.png"
         plot_visit_counts(self.maze, self.counts.state_counts, self.ss_targets, path)
         self.logger.log_image("smart_start/visits", path, step=self.collector.env_steps)
@@ -266,15 +351,15 @@ class Trainer:
             "smart_start": None if self.smart_start is None else self.smart_start.state_dict(),
             "collector": self.collector.state_dict(),
             "episodes": self.episodes,
-            "first_goal": self.first_goal,
-            "last_eval": self.last_eval,
-            "last_accuracy": self.last_accuracy,
+            "first_goal": dataclasses.asdict(self.first_goal),
+            "last_eval": None if self.last_eval is None else dataclasses.asdict(self.last_eval),
             "next_eval": self.next_eval,
             "next_checkpoint": self.next_checkpoint,
+            "next_log": self.next_log,
             "ss_targets": list(self.ss_targets),
             "recent": list(self._recent),
             "wall_s": time.perf_counter() - self.start_time,
-            "rows": (self.logger.episode_rows, self.logger.eval_rows),
+            "rows": self.logger.rows,
             "rng": ckpt.rng_state(),
             "config": self.resolved,
         }
@@ -283,7 +368,7 @@ class Trainer:
         self.logger.flush()
         return ckpt.save(self.state_dict(), self.run_dir)
 
-    def _restore(self) -> tuple[int, int]:
+    def _restore(self) -> tuple[int, ...]:
         state = ckpt.load(self.run_dir)
         ckpt.check_compatible(state["config"], self.resolved)
         self.agent.load_state_dict(state["agent"])
@@ -292,10 +377,10 @@ class Trainer:
             self.smart_start.load_state_dict(state["smart_start"])
         self.collector.load_state_dict(state["collector"])
         self.episodes = state["episodes"]
-        self.first_goal = tuple(state["first_goal"])
-        self.last_eval = state["last_eval"]
-        self.last_accuracy = state.get("last_accuracy")  # absent in checkpoints written before it existed
+        self.first_goal = FirstGoal(**state["first_goal"])
+        self.last_eval = None if state["last_eval"] is None else Evaluation(**state["last_eval"])
         self.next_eval, self.next_checkpoint = state["next_eval"], state["next_checkpoint"]
+        self.next_log = state["next_log"]
         self.ss_targets = list(state["ss_targets"])
         self._recent = deque(state["recent"], maxlen=100)
         self.wall_before = state["wall_s"]

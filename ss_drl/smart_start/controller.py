@@ -1,4 +1,5 @@
-"""Guided collection: each episode may begin with a Smart Start phase that travels to S_ss, then hands over.
+"""The Smart Start controller of guided collection: each episode may begin with a guided phase that travels to S_ss,
+then hands over to the agent's epsilon-greedy policy.
 
 Per env copy, at the start of an episode and with probability eta (never in the copy's first episode, and only once
 a state has been visited), the smart start state S_ss is chosen by UCB, the planner computes a greedy route to it on
@@ -12,6 +13,7 @@ from __future__ import annotations
 import torch
 
 from ss_drl.envs.maze import Maze
+from ss_drl.ops import epsilon_greedy, manhattan
 from ss_drl.smart_start.counts import CountModel
 from ss_drl.smart_start.planner import Planner
 from ss_drl.smart_start.selection import select_smart_start
@@ -63,9 +65,7 @@ class SmartStart:
 
     def within(self, cells: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
         """Whether each cell is within Manhattan distance theta of its target."""
-        w = self.maze.width
-        dist = (cells // w - targets // w).abs() + (cells % w - targets % w).abs()
-        return dist <= self.theta
+        return manhattan(cells, targets, self.maze.width) <= self.theta
 
     def start_episodes(self, copies: torch.Tensor, cells: torch.Tensor, goals: torch.Tensor, q_values) -> None:
         """Begin episodes in the copies of bool mask ``copies``; decide and plan their guided phases.
@@ -117,9 +117,7 @@ class SmartStart:
             return action
         planned = self.route.gather(1, cells.unsqueeze(1)).squeeze(1)
         if self.guided_epsilon > 0:
-            explore = torch.rand(cells.shape, generator=self.generator) < self.guided_epsilon
-            random = torch.randint(0, 4, cells.shape, generator=self.generator)
-            planned = torch.where(explore, random, planned)
+            planned = epsilon_greedy(planned, self.guided_epsilon, self.generator)
         return torch.where(self.active, planned, action)
 
     def after_step(self, was_active: torch.Tensor, next_cells: torch.Tensor, done: torch.Tensor) -> None:
