@@ -1,9 +1,15 @@
 """Throughput benchmarks: `python scripts/benchmark.py [--section env|train|planner|her|all] [--repeats R] [--quick]`.
 
-All logic lives in :mod:`ss_drl.benchmark`.
+All logic lives in the checkout's top-level :mod:`benchmarks` package (not installed with ss-drl).
 """
 
-from ss_drl.benchmark import main
+import sys
+from pathlib import Path
+
+# Run from the checkout: put the repository root (which holds `benchmarks/` and `ss_drl/`) first on the path.
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.cli import main  # noqa: E402
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -1,81 +1,289 @@
-"""Smoke test of the benchmark script: every section runs in-process at tiny sizes and prints its table rows.
+"""Tests of the benchmarks (``scripts/benchmark.py``, the top-level ``benchmarks`` package) at their ``--quick`` sizes.
 
-No timing is asserted: the numbers depend on the machine.
+Timings depend on the machine, so no speed is asserted. What is asserted: every section reports the sizes ``--quick``
+asked for, its numbers are positive and finite, each derived figure (ratios, sums, the bare update's env-step rate)
+agrees with the printed numbers it is derived from, and the HER section timed as many ``sample()`` calls as it says.
+The Stable-Baselines3 checks are skipped when it is missing (it is in the ``bench`` extra, not ``dev``).
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
+import math
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
 import pytest
 import torch
 
-from ss_drl import benchmark
+ROOT = Path(__file__).resolve().parents[1]
+# The benchmarks are not installed with ss-drl; they run from the checkout, as scripts/benchmark.py does.
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks import cli, her, train  # noqa: E402
+from benchmarks.common import compose_config  # noqa: E402
+
+needs_sb3 = pytest.mark.skipif(not train.sb3_available(), reason="stable-baselines3 is not installed (bench extra)")
 
 
-def _rows(text: str) -> list[str]:
-    return [line for line in text.splitlines() if line.startswith("| ") and not line.startswith("|---")]
+# --- parsing the printed markdown -------------------------------------------------------------------------------------
+def tables(text: str) -> list[list[dict[str, str]]]:
+    """Every markdown table in ``text``, as a list of rows keyed by the header's cells."""
+    found, block = [], []
+    for line in [*text.splitlines(), ""]:
+        if line.startswith("|"):
+            block.append([cell.strip() for cell in re.split(r"(?<!\\)\|", line.strip()[1:-1])])
+            continue
+        if block:
+            header, separator, *rows = block
+            assert set("".join(separator)) <= {"-"}, separator
+            assert all(len(row) == len(header) for row in rows), block
+            found.append([dict(zip(header, row)) for row in rows])
+            block = []
+    return found
 
 
-def test_env_section_rows():
-    text = benchmark.bench_env(1, raw_steps=50, gym_steps=20, batched_iters=20, num_envs=(1, 4))
-    rows = _rows(text)
-    assert any("raw gymnasium" in row for row in rows)
-    assert any("GymEnv" in row for row in rows)
-    assert any("N=1," in row for row in rows) and any("N=4," in row for row in rows)
-    assert "native N=1 / TorchRL GymEnv" in text and "exceeds 1,000,000 steps/s" in text
+def number(cell: str) -> float:
+    """A printed number ("1,234", "0.513", "12.5x", "100.0%")."""
+    value = float(cell.replace(",", "").rstrip("x%"))
+    assert math.isfinite(value), cell
+    return value
 
 
-def test_train_section_rows():
+def half_ulp(cell: str) -> float:
+    """Half a unit in the last printed digit: how far rounding may have moved the number."""
+    digits = cell.replace(",", "").rstrip("x%")
+    return 0.5 * 10.0 ** -(len(digits.split(".")[1]) if "." in digits else 0)
+
+
+def assert_quotient(printed: str, numerator: str, denominator: str) -> None:
+    """``printed`` is numerator / denominator, each as printed (rounded): the quotient of some values within their
+    rounding, itself rounded."""
+    n, d = number(numerator), number(denominator)
+    dn, dd = half_ulp(numerator), half_ulp(denominator)
+    low, high = (n - dn) / (d + dd), (n + dn) / (d - dd)
+    assert low - half_ulp(printed) <= number(printed) <= high + half_ulp(printed), (printed, numerator, denominator)
+
+
+def bullet(text: str, pattern: str) -> re.Match:
+    match = re.search(pattern, text, re.MULTILINE)
+    assert match, f"no line matches {pattern!r} in:\n{text}"
+    return match
+
+
+def run_main(argv: list[str]) -> str:
+    """``benchmarks.cli.main(argv)``'s standard output (torch's thread count restored after)."""
     threads = torch.get_num_threads()
+    out = io.StringIO()
     try:
-        text = benchmark.bench_train(1, steps=8, max_steps=20, learning_starts=20)
+        with contextlib.redirect_stdout(out):
+            assert cli.main(argv) == 0
     finally:
         torch.set_num_threads(threads)
-    rows = _rows(text)
-    assert any("`easy_dqn_her`" in row for row in rows)
-    assert any("`easy_ss_her`" in row for row in rows)
-    assert any("agent.double_dqn=false agent.dueling=false (SB3's form)" in row for row in rows)
-    assert any("the eager-PyTorch ceiling" in row for row in rows)
-    if benchmark.sb3_available():
-        assert any("SB3 `DQN` + `HerReplayBuffer`" in row for row in rows)
-        assert "ratio ours/SB3" in text and "with SB3's form of DQN" in text and "ceiling/SB3" in text
-    else:
-        assert "stable-baselines3 is not installed" in text
+    return out.getvalue()
 
 
-def test_planner_section_rows():
-    text = benchmark.bench_planner(1, mazes=("easy_small",))
-    rows = _rows(text)
-    assert sum(row.startswith("| easy_small |") for row in rows) == 2  # start and random visited target
-    assert any("start (" in row for row in rows) and any("random visited (" in row for row in rows)
+# --- sections at --quick ----------------------------------------------------------------------------------------------
+def test_env_section_quick():
+    text = run_main(["--section", "env", "--quick", "--repeats", "1"])
+    sizes = cli.QUICK_SIZES["env"]
+    (rows,) = tables(text)
+    by_env = {row["env"]: row for row in rows}
+    raw = by_env["raw gymnasium `gymnasium.make('SSDRL/Easy-v0').unwrapped`"]
+    gym = by_env["TorchRL `GymEnv('SSDRL/Easy-v0')`, step_and_maybe_reset"]
+    assert (raw["copies"], raw["steps per repeat"]) == ("1", str(sizes["raw_steps"]))
+    assert (gym["copies"], gym["steps per repeat"]) == ("1", str(sizes["gym_steps"]))
+    native = {int(row["copies"]): row for row in rows if row["env"].startswith("native `BatchedMazeEnv`")}
+    assert sorted(native) == [1, 16, 256]
+    for n, row in native.items():
+        assert row["env"] == f"native `BatchedMazeEnv`, N={n}, step_and_maybe_reset"
+        assert int(row["steps per repeat"]) == sizes["batched_iters"] * n  # every copy's steps count
+    assert all(number(row["env steps/s"]) > 0 for row in rows)
+    one = native[1]["env steps/s"]
+    assert_quotient(bullet(text, r"^- native N=1 / TorchRL GymEnv: (\S+)x$")[1], one, gym["env steps/s"])
+    assert_quotient(bullet(text, r"^- native N=1 / raw gymnasium: (\S+)x$")[1], one, raw["env steps/s"])
+    verdict = bullet(text, r"^- native N=256: (\S+) steps/s; exceeds 1,000,000 steps/s: (yes|no)$")
+    assert verdict[1] == native[256]["env steps/s"]
+    assert verdict[2] == ("yes" if number(verdict[1]) > 1_000_000 else "no")
 
 
-def test_her_section_rows():
-    text = benchmark.bench_her(1, sizes=(500, 2_000), samples=3)
-    rows = _rows(text)
-    assert any(row.startswith("| 500 |") for row in rows)
-    assert any(row.startswith("| 2,000 |") for row in rows)
-    assert "ratio 2,000 / 500" in text
+def test_planner_section_quick():
+    from ss_drl.envs.maze import load_maze, random_maze
+
+    text = run_main(["--section", "planner", "--quick", "--repeats", "1"])
+    assert cli.QUICK_SIZES["planner"]["mazes"] == ("easy_small", "random29")  # no 100x100 maze, no Extreme
+    (rows,) = tables(text)
+    assert [row["maze"] for row in rows] == ["easy_small"] * 2 + ["random29"] * 2
+    for name, maze in (("easy_small", load_maze("easy_small")), ("random29", random_maze(29, 29, seed=0))):
+        mine = [row for row in rows if row["maze"] == name]
+        assert all(row["size"] == f"{maze.height}x{maze.width}" for row in mine)
+        assert all(int(row["visited states"]) == int((~maze.walls).sum()) for row in mine)  # fully explored
+        assert mine[0]["target S_ss"] == f"start ({maze.start[0]},{maze.start[1]})"
+        assert mine[1]["target S_ss"].startswith("random visited (")
+    for row in rows:
+        times = {key: number(row[key]) for key in row if key.endswith(" ms") or key.endswith("ms, w_q 0")}
+        assert len(times) == 5 and all(t > 0 for t in times.values()), row
+        # A decision is the selection plus the planning; "w_q 0" selects by counts alone and plans the same way.
+        slack = half_ulp(row["selection ms"]) + half_ulp(row["planning ms"]) + half_ulp(row["decision ms"])
+        assert abs(times["decision ms"] - times["selection ms"] - times["planning ms"]) <= slack
+        assert times["decision ms, w_q 0"] > times["planning ms"] - half_ulp(row["planning ms"])
+        assert int(row["VI sweeps"]) > 0
+        # A perfect maze, fully explored: value iteration converges and every state has a route to the target.
+        assert (row["converged"], row["states with V>0"]) == ("yes", "100.0%")
+    assert "Extreme" not in text  # the Extreme verdicts come only with the Extreme maze
 
 
-def test_cli_prints_command_and_table(capsys):
+def test_her_section_quick_times_the_stated_samples(monkeypatch):
+    from ss_drl.her import HindsightReplayBuffer
+
+    calls = []
+    sample = HindsightReplayBuffer.sample
+
+    def counted(self, *args, **kwargs):
+        calls.append(len(self))
+        return sample(self, *args, **kwargs)
+
+    monkeypatch.setattr(HindsightReplayBuffer, "sample", counted)
+    repeats = 2
+    text = run_main(["--section", "her", "--quick", "--repeats", str(repeats)])
+    sizes, samples = cli.QUICK_SIZES["her"]["sizes"], cli.QUICK_SIZES["her"]["samples"]
+    assert max(sizes) < 1_000_000
+    (rows,) = tables(text)
+    assert [number(row["stored transitions"]) for row in rows] == list(sizes)
+    for size, row in zip(sizes, rows):
+        assert number(row["len(buffer)"]) == size
+        assert number(row["samples timed"]) == repeats * samples
+        assert number(row["transitions drawn"]) == repeats * samples * 128  # batch 128
+        median, p90 = number(row["sample ms (median)"]), number(row["sample ms (p90)"])
+        # A quarter of the samples at least lie at or above the median of the repeats' medians.
+        assert 0 < median <= p90 + half_ulp(row["sample ms (p90)"]) and number(row["fill s"]) >= 0
+        # 10 warm-up samples, then the timed ones, all from the buffer of this size.
+        assert calls.count(size) == 10 + repeats * samples
+    assert len(calls) == len(sizes) * (10 + repeats * samples)
+    ratio = bullet(text, rf"^- ratio {max(sizes):,} / {min(sizes):,}: (\S+) ")[1]
+    assert_quotient(ratio, rows[-1]["sample ms (median)"], rows[0]["sample ms (median)"])
+    assert f"median of {samples} samples, median of {repeats} repeats" in text
+
+
+@pytest.fixture(scope="module")
+def train_quick() -> str:
+    return run_main(["--section", "train", "--quick", "--repeats", "1"])
+
+
+SB3_FORM_RUN = "`easy_dqn_her` agent.double_dqn=false agent.dueling=false (SB3's form)"
+BARE_RUN = "bare PyTorch update of SB3's network (no env, no buffer, no TorchRL): the eager-PyTorch ceiling"
+
+
+def _train_rows(text: str) -> tuple[dict[str, dict[str, str]], list[dict[str, str]]]:
+    results, parity = tables(text)
+    return {row["run"]: row for row in results}, parity
+
+
+def test_train_section_quick(train_quick):
+    sizes = cli.QUICK_SIZES["train"]
+    steps, learning_starts, max_steps = sizes["steps"], sizes["learning_starts"], sizes["max_steps"]
+    assert f"{steps} timed env steps after learning_starts={learning_starts}" in train_quick
+    rows, parity = _train_rows(train_quick)
+    ours = [rows["`easy_dqn_her`"], rows[SB3_FORM_RUN], rows["`easy_ss_her` (Smart Start on; for information)"]]
+    cfg = compose_config(["+experiment=easy_dqn_her"])
+    fpb, per_step = int(cfg.trainer.frames_per_batch), int(cfg.agent.gradient_steps) / int(cfg.agent.train_freq)
+    for row in ours:
+        assert row["framework"] == "ss-drl (TorchRL)"
+        # The window runs from train.csv's first row to the end of the run. The first row comes LOG_INTERVAL updates
+        # (a batch at most later) after the first update, which waits for learning_starts and a full batch stored.
+        timed = int(row["timed env steps"])
+        wait = max(0, int(cfg.agent.batch_size) - learning_starts)
+        assert steps - wait - train.LOG_INTERVAL - fpb <= timed < steps
+        # A row is written mid-batch, once its update count is reached: the window may hold a batch's updates more.
+        assert 0 < int(row["updates"]) <= (timed + fpb) * per_step
+        for key in ("train-phase env steps/s", "updates/s", "whole-run env steps/s"):
+            assert number(row[key]) > 0
+    bare = rows[BARE_RUN]
+    assert bare["updates"] == str(steps)
+    # At train_freq env steps per gradient_steps updates, the ceiling's env steps/s is its updates/s / per_step.
+    assert_quotient(bare["train-phase env steps/s"], bare["updates/s"], str(per_step))
+    settings = {row[""]: row for row in parity}
+    assert settings["env"]["ss-drl"] == f"`BatchedMazeEnv('easy', 1, max_steps={max_steps})`"
+    assert settings["learning_starts"]["ss-drl"] == str(learning_starts)
+    decisions = bullet(train_quick, r"^- `easy_ss_her`: (\d+) Smart Start decisions per run")
+    assert int(decisions[1]) >= 1  # episodes of 100 steps: several episode starts after the first
+    if not train.sb3_available():
+        assert "stable-baselines3 is not installed" in train_quick
+        assert not any(row["framework"].startswith("stable-baselines3") for row in rows.values())
+
+
+@needs_sb3
+def test_train_section_quick_against_sb3(train_quick):
+    steps = cli.QUICK_SIZES["train"]["steps"]
+    rows, parity = _train_rows(train_quick)
+    sb3 = rows["SB3 `DQN` + `HerReplayBuffer`"]
+    assert sb3["framework"] == f"stable-baselines3 {train.sb3_version()}"
+    assert int(sb3["timed env steps"]) == steps and int(sb3["updates"]) == steps  # one update per env step
+    assert all(number(sb3[key]) > 0 for key in ("train-phase env steps/s", "updates/s", "whole-run env steps/s"))
+    theirs = sb3["train-phase env steps/s"]
+    ours = rows["`easy_dqn_her`"]["train-phase env steps/s"]
+    same_form = rows[SB3_FORM_RUN]["train-phase env steps/s"]
+    ceiling = rows[BARE_RUN]["train-phase env steps/s"]
+    assert_quotient(bullet(train_quick, r"^- ratio ours/SB3 \(train-phase .*: \*\*(\S+)\*\*$")[1], ours, theirs)
+    assert_quotient(bullet(train_quick, r"^- ratio ours/SB3 with SB3's form .*: \*\*(\S+)\*\*$")[1], same_form, theirs)
+    assert_quotient(bullet(train_quick, r"^- ceiling/SB3: \*\*(\S+)\*\*")[1], ceiling, theirs)
+    settings = {row[""]: row for row in parity}
+    assert settings["learning_starts"]["SB3"] == str(cli.QUICK_SIZES["train"]["learning_starts"])
+    assert settings["HER"]["SB3"] == "future, n_sampled_goal=4"
+
+
+def test_train_section_without_sb3_notes_it(monkeypatch):
+    monkeypatch.setattr(train, "sb3_available", lambda: False)
     threads = torch.get_num_threads()
     try:
-        assert benchmark.main(["--section", "her", "--quick", "--repeats", "1"]) == 0
+        text = train.bench_train(1, steps=8, max_steps=20, learning_starts=20, experiments=("easy_dqn_her",))
     finally:
         torch.set_num_threads(threads)
-    out = capsys.readouterr().out
-    assert "`$ python scripts/benchmark.py --section her --quick --repeats 1`" in out
-    assert "| 10,000 |" in out and "| 1,000,000 |" in out
+    rows, _ = _train_rows(text)
+    assert "stable-baselines3 is not installed, so the SB3 rows are skipped" in text
+    assert len(rows) == 3 and not any("SB3 `DQN`" in run for run in rows)
+    assert "ratio ours/SB3" not in text
 
 
-def test_cli_threads_option(capsys):
-    threads = torch.get_num_threads()
-    try:
-        assert benchmark.main(["--section", "planner", "--repeats", "1", "--threads", "2"]) == 0
-        assert "(threads 2)" in capsys.readouterr().out
+# --- command line -----------------------------------------------------------------------------------------------------
+def test_quick_shrinks_every_section():
+    assert set(cli.QUICK_SIZES) == set(cli.SECTIONS)
+    assert max(cli.QUICK_SIZES["her"]["sizes"]) <= 10_000  # not the 1M-transition buffer
+    assert not {"random100", "extreme"} & set(cli.QUICK_SIZES["planner"]["mazes"])
+    assert cli.QUICK_SIZES["train"]["steps"] < 1_500
+
+
+def test_cli_threads_option_and_bad_numbers(capsys):
+    text = run_main(["--section", "her", "--quick", "--repeats", "1", "--threads", "2"])
+    assert "`$ python scripts/benchmark.py --section her --quick --repeats 1 --threads 2`" in text
+    assert "(threads 2)" in text
+    for option in ("--threads", "--repeats", "--train-steps"):
         with pytest.raises(SystemExit) as exc:
-            benchmark.main(["--section", "planner", "--threads", "0"])
-    finally:
-        torch.set_num_threads(threads)
-    assert exc.value.code != 0
-    assert "--threads must be >= 1, got 0" in capsys.readouterr().err
+            cli.main(["--section", "her", option, "0"])
+        assert exc.value.code != 0
+        assert capsys.readouterr().err.splitlines()[-1].endswith(f"error: {option} must be >= 1, got 0")
+
+
+def test_script_runs_from_the_checkout(tmp_path):
+    """``python scripts/benchmark.py`` finds ``benchmarks`` (not installed) from any directory, without PYTHONPATH."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "benchmark.py"), "--section", "her", "--quick", "--repeats", "1"],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    (rows,) = tables(proc.stdout)
+    assert [row["stored transitions"] for row in rows] == [f"{n:,}" for n in cli.QUICK_SIZES["her"]["sizes"]]
+    assert np.all([number(row["sample ms (median)"]) > 0 for row in rows])
+
+
+def test_synthetic_buffer_holds_the_asked_size():
+    buffer = her.filled_buffer(1_500, chunk=400)
+    assert len(buffer) == 1_500
+    assert buffer.sample().numel() == 128

@@ -25,6 +25,7 @@ from ss_drl.analysis import (
     results_table,
 )
 from ss_drl.analysis.aggregate import AnalysisError, IncompleteRun
+from ss_drl.analysis.tables import format_markdown_table
 from ss_drl.training.outputs import (
     EPISODE_COLUMNS,
     EPISODES_FILE,
@@ -149,27 +150,53 @@ def test_bootstrap_identical_and_single_values_collapse():
     assert bootstrap_ci([7.0], 200, rng=np.random.default_rng(1)) == (7.0, 7.0, 7.0)
 
 
-def test_bootstrap_matches_direct_numpy_percentile_bootstrap():
+# Resample means of [0, 3, 6] (n = 3): each of the 27 equally likely index triples gives mean k1 + 2 * k2, where k1 and
+# k2 count the draws of 3 and of 6, i.e. the sum of three uniform draws from {0, 1, 2}. So the mean takes the values
+# 0..6 with counts 1, 3, 6, 7, 6, 3, 1 out of 27: cumulative 1/27 = .037, 4/27 = .148, 10/27 = .370, 17/27 = .630,
+# 23/27 = .852, 26/27 = .963, 1. A percentile that falls strictly inside a step of this CDF is that step's value, and
+# with 20,000 resamples every such percentile below sits at least 9 standard errors from a step's edge.
+THREE_VALUES = [0.0, 3.0, 6.0]
+THREE_VALUES_CI = {
+    0.95: (0.0, 6.0),  # 2.5%: .025 < .037 -> 0;  97.5%: .963 < .975 -> 6
+    0.90: (1.0, 5.0),  # 5%: .037 < .05 < .148 -> 1;  95%: .852 < .95 < .963 -> 5
+    0.50: (2.0, 4.0),  # 25%: .148 < .25 < .370 -> 2;  75%: .630 < .75 < .852 -> 4
+}
+
+
+@pytest.mark.parametrize("confidence", sorted(THREE_VALUES_CI))
+def test_bootstrap_three_values_known_quantiles(confidence):
+    mean, low, high = bootstrap_ci(THREE_VALUES, 20_000, confidence, rng=5)
+    assert (mean, low, high) == (3.0, *THREE_VALUES_CI[confidence])
+    # The order of the values does not matter.
+    assert bootstrap_ci(THREE_VALUES[::-1], 20_000, confidence, rng=6) == (3.0, *THREE_VALUES_CI[confidence])
+
+
+def test_bootstrap_seed_is_reproducible():
     values = np.array([1.0, 4.0, 2.0, 8.0, 5.0])
-    mean, low, high = bootstrap_ci(values, 500, 0.9, np.random.default_rng(123))
-    rng = np.random.default_rng(123)
-    idx = rng.integers(0, len(values), size=(500, len(values)))
-    means = values[idx].mean(axis=1)
-    assert mean == 4.0
-    np.testing.assert_allclose([low, high], np.percentile(means, [5.0, 95.0]), rtol=1e-12, atol=0)
-    assert low < mean < high
-    assert bootstrap_ci(values, 500, 0.9, 123) == (mean, low, high)  # an int seed is default_rng(seed); reproducible
+    ci = bootstrap_ci(values, 500, 0.9, np.random.default_rng(123))
+    assert bootstrap_ci(values, 500, 0.9, 123) == ci  # an int seed is default_rng(seed)
+    assert bootstrap_ci(values, 500, 0.9, 123) == ci  # and the same seed gives the same interval
+    assert ci[0] == 4.0 and 1.0 <= ci[1] < 4.0 < ci[2] <= 8.0
     _, low50, high50 = bootstrap_ci(values, 500, 0.5, 123)
-    assert low <= low50 < high50 <= high
+    assert ci[1] <= low50 < high50 <= ci[2]
 
 
-def test_bootstrap_two_values_known_interval():
-    # Resample means of [0, 1] are 0, 0.5, 1 with probabilities 1/4, 1/2, 1/4: the 2.5/97.5 percentiles are 0 and 1.
-    assert bootstrap_ci([0.0, 1.0], 10_000, rng=0) == (0.5, 0.0, 1.0)
-    with pytest.raises(ValueError):
-        bootstrap_ci([], 10)
-    with pytest.raises(ValueError):
-        bootstrap_ci([1.0], 0)
+def test_bootstrap_ci_of_normal_samples_covers_and_narrows_like_one_over_sqrt_n():
+    # The 95% percentile-bootstrap interval of the mean of N draws from N(0, 1) is about mean +- 1.96 * sd / sqrt(N),
+    # where sd is the sample's plug-in spread, sqrt((N - 1) / N) on average, and it holds the true mean 0 in ~95% of
+    # repetitions (~93% at N = 20, for that plug-in spread). 400 repetitions: the coverage's standard error is ~0.012.
+    rng = np.random.default_rng(2024)
+    reps = 400
+    widths, covered = {}, {}
+    for n in (20, 80):
+        cis = [bootstrap_ci(rng.normal(0.0, 1.0, n), 1000, 0.95, rng) for _ in range(reps)]
+        low, high = np.array([c[1] for c in cis]), np.array([c[2] for c in cis])
+        widths[n] = float(np.mean(high - low))
+        covered[n] = float(np.mean((low <= 0.0) & (0.0 <= high)))
+    for n in (20, 80):
+        assert 0.89 <= covered[n] <= 0.98, (n, covered[n])
+        assert widths[n] == pytest.approx(2 * 1.96 * np.sqrt((n - 1) / n) / np.sqrt(n), rel=0.05)
+    assert widths[20] / widths[80] == pytest.approx(2.0, rel=0.1)  # 4x the samples, half the width
 
 
 def test_moving_average_trailing_window():
@@ -187,6 +214,10 @@ def test_aggregate_curve_aligns_by_episode_over_seeds_that_have_it():
         _, low, high = bootstrap_ci(values, 300, 0.95, np.random.default_rng(4))
         assert (c.low[i], c.high[i]) == pytest.approx((low, high), rel=1e-12)
     assert (c.low[2], c.high[2]) == (3.0, 3.0)
+    # Independently of bootstrap_ci: seeds at 0, 3, 6 in every episode have the 90% band [1, 5] (see THREE_VALUES_CI).
+    band = aggregate_curve([[0, 0], [3, 3], [6, 6]], n_resamples=20_000, confidence=0.9, seed=1)
+    np.testing.assert_array_equal(band.mean, [3.0, 3.0])
+    np.testing.assert_array_equal(np.stack([band.low, band.high]), [[1.0, 1.0], [5.0, 5.0]])
     # Smoothing per seed before aggregating: [0, 2, 4] -> [0, 1, 3] and [2, 2] -> [2, 2].
     s = aggregate_curve([[0, 2, 4], [2, 2]], smooth=2, n_resamples=50)
     np.testing.assert_array_equal(s.mean, [1.0, 1.5, 3.0])
@@ -223,33 +254,37 @@ def test_groups_by_maze_and_method(loaded):
 
 
 def test_results_table_values(loaded):
-    rows = {(r.maze, r.method): r for r in results_table(group_runs(loaded[0]), n_resamples=400, seed=9)}
+    rows = {(r.maze, r.method): r for r in results_table(group_runs(loaded[0]), n_resamples=20_000, seed=9)}
     ss = rows[(MAZE, "ss_her")]
-    _, low, high = bootstrap_ci([1000.0, 2000.0, 6000.0], 400, 0.95, np.random.default_rng(9))
     assert (ss.seeds, ss.first_goal_reached, ss.first_goal_mean, ss.first_goal_median) == (3, 3, 3000.0, 2000.0)
-    assert (ss.first_goal_low, ss.first_goal_high) == (low, high)
+    # Over 3 seeds (1000, 2000, 6000), a resample of the smallest alone (or the largest alone) has probability
+    # 1/27 = 3.7% > 2.5%, so the 95% percentile interval runs from the smallest to the largest value: asymmetric
+    # about the mean 3000 (at 20,000 resamples the 3.7% is 9 standard errors above 2.5%).
+    assert (ss.first_goal_low, ss.first_goal_high) == (1000.0, 6000.0)
     assert ss.return_early == 1.75 / 3 and ss.return_late == 1.0
     assert ss.length_early == 30.0 and ss.length_late == 12.0
     assert (ss.near_optimal_median, ss.near_optimal_reached) == (2000.0, 3)  # first hits: 2000, 1000, 3000
     assert ss.wall_median == 20.0
     assert ss.greedy_accuracy == 0.75  # seeds 0 and 1 (0.5, 1.0); seed 2's summary has none
     assert ss.cells() == [
-        MAZE, "ss_her", "3", f"3,000.0 ± {(high - low) / 2:,.1f}", "2,000.0", "3/3 seeds",
+        MAZE, "ss_her", "3", "3,000.0", "[1,000.0, 6,000.0]", "2,000.0", "3/3 seeds",
         "0.583", "1.000", "30.0", "12.0", "2,000.0", "3/3 seeds", "0.750", "20.0",
     ]  # fmt: skip
 
     dqn = rows[(MAZE, "dqn")]
-    assert (dqn.first_goal_mean, dqn.first_goal_low, dqn.first_goal_high) == (9000.0, 9000.0, 9000.0)
+    # One seed reached G: a mean, and no interval.
+    assert (dqn.first_goal_mean, dqn.first_goal_low, dqn.first_goal_high) == (9000.0, None, None)
     assert dqn.return_early == 0.01 / 3 and dqn.return_late is None and dqn.length_late is None
     assert (dqn.near_optimal_median, dqn.near_optimal_reached) == (None, 0)
     assert dqn.cells() == [
-        MAZE, "dqn", "3", "9,000.0 ± 0.0", "9,000.0", "1/3 seeds",
+        MAZE, "dqn", "3", "9,000.0", "–", "9,000.0", "1/3 seeds",
         "0.003", "–", "100.0", "–", "never", "0/3 seeds", "–", "6.0",
     ]  # fmt: skip
 
     other = rows[(OTHER_MAZE, "dqn")]
-    assert other.cells()[3:6] == ["never", "never", "0/1 seeds"]
-    assert other.cells()[10:12] == ["never", "0/1 seeds"]
+    assert other.cells()[3:7] == ["never", "–", "never", "0/1 seeds"]
+    assert other.cells()[11:13] == ["never", "0/1 seeds"]
+    assert (other.first_goal_mean, other.first_goal_low, other.first_goal_high) == (None, None, None)
 
 
 def test_markdown_table_shape(loaded):
@@ -258,7 +293,23 @@ def test_markdown_table_shape(loaded):
     assert len(lines) == 2 + 3
     assert lines[0] == "| " + " | ".join(agg.TABLE_HEADER) + " |"
     assert all(line.count(" | ") == len(agg.TABLE_HEADER) - 1 for line in lines[2:])
-    assert lines[-1].startswith(f"| {MAZE} | ss_her | 3 | 3,000.0 ± ")
+    assert lines[-1].startswith(f"| {MAZE} | ss_her | 3 | 3,000.0 | [")
+    assert lines[3].startswith(f"| {MAZE} | dqn | 3 | 9,000.0 | – | 9,000.0 | 1/3 seeds |")
+
+
+def test_format_markdown_table_escapes_and_checks_row_length():
+    text = format_markdown_table(["a", "b|c"], [[1, "x|y"], ["two\nlines", 2.5]])
+    assert text.splitlines() == [
+        "| a | b\\|c |",
+        "|---|---|",
+        "| 1 | x\\|y |",
+        "| two lines | 2.5 |",
+    ]
+    assert not text.endswith("\n")
+    with pytest.raises(ValueError, match="table row 1 has 1 cells, expected 2"):
+        format_markdown_table(["a", "b"], [[1, 2], [3]])
+    with pytest.raises(ValueError, match="at least one header"):
+        format_markdown_table([], [])
 
 
 # ---------------------------------------------------------------------------------------------------------------------

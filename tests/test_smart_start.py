@@ -12,6 +12,7 @@ import torch
 
 from ss_drl.envs.maze import load_maze, random_maze
 from ss_drl.smart_start import CountModel, Planner, SmartStart, select_smart_start, ucb_scores
+from ss_drl.smart_start.counts import fully_explored_model
 
 GAMMA = 0.99
 
@@ -19,23 +20,6 @@ GAMMA = 0.99
 # --- helpers ---------------------------------------------------------------------------------------------------------
 def free_cells(maze) -> np.ndarray:
     return np.flatnonzero(~maze.walls.reshape(-1))
-
-
-def full_exploration(maze) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Every free cell x every action, with its deterministic successor and reward 1 on reaching the goal."""
-    table = maze.transition_table()
-    free = free_cells(maze)
-    s = np.repeat(free, 4)
-    a = np.tile(np.arange(4), free.size)
-    s2 = table[s, a]
-    r = (s2 == maze.goal_cell).astype(np.float32)
-    return torch.from_numpy(s), torch.from_numpy(a), torch.from_numpy(s2), torch.from_numpy(r)
-
-
-def explored_model(maze) -> CountModel:
-    model = CountModel(maze.n_cells, 4)
-    model.update(*full_exploration(maze))
-    return model
 
 
 def bfs_to(maze, cell: int) -> np.ndarray:
@@ -112,6 +96,25 @@ def test_counts_match_independent_counters():
     assert model.visited_states().tolist() == sorted(n_s)
 
 
+def test_fully_explored_model_counts_every_move_once():
+    maze = load_maze("easy_small")
+    model = fully_explored_model(maze)
+    walls = maze.walls
+    free = [(r, c) for r in range(maze.height) for c in range(maze.width) if not walls[r, c]]
+    assert model.total_visits == 4 * len(free)
+    assert model.visited_states().tolist() == [r * maze.width + c for r, c in free]
+    for r, c in free:
+        cell = r * maze.width + c
+        assert model.count(cell) == 4
+        for a, (dr, dc) in enumerate([(0, 1), (1, 0), (0, -1), (-1, 0)]):  # right, down, left, up
+            nr, nc = r + dr, c + dc
+            blocked = not (0 <= nr < maze.height and 0 <= nc < maze.width) or walls[nr, nc]
+            nxt = cell if blocked else nr * maze.width + nc
+            assert model.count(cell, a) == 1 and model.count(cell, a, nxt) == 1
+            assert float(model.reward_sums[cell * 4 + a]) == (1.0 if nxt == maze.goal_cell else 0.0)
+    assert int(model.state_counts[walls.reshape(-1)].sum()) == 0  # walls are never departed from
+
+
 def test_stochastic_transition_probabilities():
     model = CountModel(10, 4)
     # (3, 1) -> 4 three times and -> 7 once; (5, 0) -> 6 twice.
@@ -155,7 +158,7 @@ def test_state_dict_round_trip():
 )
 def test_count_model_memory_is_sparse(make, limit):
     maze = make()
-    model = explored_model(maze)
+    model = fully_explored_model(maze)
     assert model.total_visits == 4 * maze.n_free
     assert model.keys.numel() == 4 * maze.n_free  # one successor per (s, a) in a deterministic maze
     assert model.nbytes() < limit
@@ -173,7 +176,7 @@ def _targets(maze, seed: int) -> list[int]:
 def test_planner_routes_are_shortest_paths(name):
     maze = load_maze(name)
     table = maze.transition_table()
-    model = explored_model(maze)
+    model = fully_explored_model(maze)
     planner = Planner(maze.width, gamma=GAMMA)
     gen = torch.Generator().manual_seed(0)
     free = free_cells(maze)
@@ -200,7 +203,7 @@ def test_planner_routes_are_shortest_paths(name):
 def test_planner_from_random_start_cells_and_extreme():
     maze = load_maze("extreme")
     table = maze.transition_table()
-    model = explored_model(maze)
+    model = fully_explored_model(maze)
     rng = np.random.default_rng(4)
     target = int(rng.choice(free_cells(maze)))
     plan = Planner(maze.width, gamma=GAMMA).plan(model, target, torch.Generator().manual_seed(1))
@@ -215,7 +218,7 @@ def test_planner_from_random_start_cells_and_extreme():
 def test_batched_planning_matches_single(name):
     maze = load_maze(name)
     table = maze.transition_table()
-    model = explored_model(maze)
+    model = fully_explored_model(maze)
     planner = Planner(maze.width, gamma=GAMMA)
     gen = torch.Generator().manual_seed(5)
     targets = _targets(maze, seed=6)[:3]
@@ -272,7 +275,7 @@ def test_untried_actions_are_valued_zero():
 def test_theta_stops_within_manhattan_distance(theta):
     maze = load_maze("medium")
     table = maze.transition_table()
-    model = explored_model(maze)
+    model = fully_explored_model(maze)
     target = maze.goal_cell
     planner = Planner(maze.width, gamma=GAMMA, theta=theta)
     plan = planner.plan(model, target, torch.Generator().manual_seed(7))
@@ -294,7 +297,7 @@ def test_theta_stops_within_manhattan_distance(theta):
 
 def test_max_sweeps_caps_value_iteration():
     maze = load_maze("hard")
-    model = explored_model(maze)
+    model = fully_explored_model(maze)
     plan = Planner(maze.width, gamma=GAMMA, max_sweeps=5).plan(model, maze.goal_cell)
     assert plan.sweeps == 5 and not plan.converged
     dist = bfs_to(maze, maze.goal_cell)
@@ -555,7 +558,7 @@ def _controller(maze, model, num_envs, eta, theta=0, seed=0):
 
 def _model_with_least_visited(maze, target: int) -> CountModel:
     """Fully explored, then every free cell but ``target`` departed from once more: ``target`` is the unique S_ss."""
-    model = explored_model(maze)
+    model = fully_explored_model(maze)
     table = maze.transition_table()
     others = free_cells(maze)[free_cells(maze) != target]
     a = np.zeros_like(others)
@@ -565,7 +568,7 @@ def _model_with_least_visited(maze, target: int) -> CountModel:
 
 def test_no_guided_phase_in_first_episode_and_eta_bounds():
     maze = load_maze("easy_small")
-    model = explored_model(maze)
+    model = fully_explored_model(maze)
     n = 4
     cells = torch.full((n,), maze.start_cell)
     goals = torch.full((n,), maze.goal_cell)
@@ -594,7 +597,7 @@ def test_no_guided_phase_in_first_episode_and_eta_bounds():
 def test_eta_half_guides_about_half_the_episodes():
     maze = load_maze("easy_small")
     n = 2000
-    ss = _controller(maze, explored_model(maze), n, eta=0.5, seed=3)
+    ss = _controller(maze, fully_explored_model(maze), n, eta=0.5, seed=3)
     ss.end_episodes(torch.ones(n, dtype=torch.bool))
     cells = torch.full((n,), maze.start_cell)
     ss.start_episodes(torch.ones(n, dtype=torch.bool), cells, torch.full((n,), maze.goal_cell), _zero_q_values)

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ss_drl.analysis.tables import format_markdown_table
 from ss_drl.training.outputs import (
     CHECKPOINT_FILE,
     EPISODE_COLUMNS,
@@ -400,7 +401,7 @@ class TableRow:
 
     * ``first_goal_*``: env steps until G was first reached, over the seeds that reached it (``first_goal_reached``
       of ``seeds``): mean with its 95% percentile-bootstrap CI ``[first_goal_low, first_goal_high]``, and median;
-      None when no seed reached G.
+      all None when no seed reached G, and the CI None when only one did (one value has no interval).
     * ``return_early`` / ``length_early``: mean over seeds of each seed's mean over episodes ``1..EARLY_EPISODES``;
       ``*_late``: the same over episodes ``EARLY_EPISODES + 1`` onwards (None when no seed has them).
     * ``near_optimal_median``: median over the seeds that got there (``near_optimal_reached`` of ``seeds``) of the env
@@ -432,13 +433,18 @@ class TableRow:
         if self.first_goal_mean is None:
             first_goal, first_median = "never", "never"
         else:
-            half = (self.first_goal_high - self.first_goal_low) / 2
-            first_goal, first_median = f"{self.first_goal_mean:,.1f} ± {half:,.1f}", f"{self.first_goal_median:,.1f}"
+            first_goal, first_median = f"{self.first_goal_mean:,.1f}", f"{self.first_goal_median:,.1f}"
+        if self.first_goal_low is None or self.first_goal_high is None:
+            interval = "–"
+        else:
+            # The percentile interval is asymmetric about the mean: print both ends, not a half width.
+            interval = f"[{self.first_goal_low:,.1f}, {self.first_goal_high:,.1f}]"
         return [
             self.maze,
             self.method,
             str(self.seeds),
             first_goal,
+            interval,
             first_median,
             f"{self.first_goal_reached}/{self.seeds} seeds",
             _fmt(self.return_early, ".3f"),
@@ -460,7 +466,8 @@ TABLE_HEADER = (
     "maze",
     "method",
     "seeds",
-    "first goal: env steps (mean ± 95% CI)",
+    "first goal: env steps (mean)",
+    "first goal: 95% CI [low, high]",
     "first goal: median",
     "reached goal",
     f"return (ep 1-{EARLY_EPISODES})",
@@ -477,14 +484,17 @@ TABLE_HEADER = (
 def table_row(maze: str, method: str, runs: Sequence[Run], n_resamples: int = 1000, seed: int = 0) -> TableRow:
     """Compute one table row from the runs of one ``(maze, method)`` group (see :class:`TableRow`).
 
-    The first-goal CI is ``bootstrap_ci(values, n_resamples, 0.95, numpy.random.default_rng(seed))``.
+    The first-goal CI is ``bootstrap_ci(values, n_resamples, 0.95, numpy.random.default_rng(seed))`` over the seeds
+    that reached G, when at least two did.
     """
     first = [s for s in (first_goal_env_step(r) for r in runs) if s is not None]
-    if first:
+    fg_mean = fg_low = fg_high = fg_median = None
+    if len(first) > 1:
         fg_mean, fg_low, fg_high = bootstrap_ci(first, n_resamples, 0.95, np.random.default_rng(seed))
+    elif first:
+        fg_mean = first[0]
+    if first:
         fg_median = float(np.median(first))
-    else:
-        fg_mean = fg_low = fg_high = fg_median = None
     near = [s for s in (near_optimal_env_step(r) for r in runs) if s is not None]
     walls = [float(r.summary[SK_WALL]) for r in runs if _is_number(r.summary.get(SK_WALL))]
     accuracy = [float(r.summary[SK_ACCURACY]) for r in runs if _is_number(r.summary.get(SK_ACCURACY))]
@@ -518,11 +528,5 @@ def results_table(groups: dict[tuple[str, str], list[Run]], n_resamples: int = 1
 
 
 def markdown_table(rows: Sequence[TableRow]) -> str:
-    """The rows as a GitHub-flavoured markdown table (header, separator, one line per row; trailing newline)."""
-
-    def line(cells: Sequence[str]) -> str:
-        return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
-
-    out = [line(TABLE_HEADER), "|" + "|".join("---" for _ in TABLE_HEADER) + "|"]
-    out += [line(r.cells()) for r in rows]
-    return "\n".join(out) + "\n"
+    """The results table in markdown (:data:`TABLE_HEADER`, one line per row; trailing newline)."""
+    return format_markdown_table(TABLE_HEADER, [r.cells() for r in rows]) + "\n"

@@ -11,8 +11,13 @@ The learned model is ``P(s' | s, a) = C(s, a, s') / C(s, a)`` over tried (s, a).
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
+import numpy as np
 import torch
+
+if TYPE_CHECKING:
+    from ss_drl.envs.maze import Maze
 
 
 @dataclasses.dataclass
@@ -162,3 +167,22 @@ class CountModel:
         for name in ("state_counts", "sa_counts", "reward_sums", "keys", "sas_counts"):
             setattr(self, name, state[name].clone())
         self._structure = None
+
+
+def fully_explored_model(maze: Maze) -> CountModel:
+    """A count model that has seen every transition of ``maze`` once: each free cell x each action, with its
+    (deterministic) successor from ``maze.transition_table()`` and reward 1 exactly when that successor is the goal.
+
+    Wall cells are never departed from. The model of what Smart Start knows once exploration is complete; the planner
+    benchmark and tests plan on it.
+    """
+    table = maze.transition_table()
+    n_actions = table.shape[1]
+    free = np.flatnonzero(~maze.walls.reshape(-1))
+    s = np.repeat(free, n_actions)
+    a = np.tile(np.arange(n_actions), free.size)
+    s2 = table[s, a]
+    r = (s2 == maze.goal_cell).astype(np.float32)
+    model = CountModel(maze.n_cells, n_actions)
+    model.update(torch.from_numpy(s), torch.from_numpy(a), torch.from_numpy(s2), torch.from_numpy(r))
+    return model

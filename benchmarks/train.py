@@ -1,0 +1,343 @@
+"""The ``train`` section: training throughput (env steps/s, updates included) on Easy of ss-drl (``easy_dqn_her``, and
+``easy_ss_her`` for information) against Stable-Baselines3 ``DQN`` + ``HerReplayBuffer`` with the same network width,
+batch size, buffer size, learning_starts, update-to-data ratio and HER setting, run one after the other in this
+process, and the eager-PyTorch ceiling (:func:`run_bare_update`). Only the training phase is timed (from
+learning_starts on); the whole-run rate is shown too. Stable-Baselines3 is optional (the ``bench`` extra): without
+it the SB3 rows are left out with a note.
+"""
+
+from __future__ import annotations
+
+import csv
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+
+from benchmarks.common import compose_config, fmt_rate, markdown_table, median
+
+
+#: Updates between train.csv rows in the benchmark runs: the rows time the training phase.
+LOG_INTERVAL = 10
+
+
+def train_phase_window(run_dir) -> tuple[float, int, int]:
+    """(seconds, env steps, updates) of the training phase, from the run's train.csv: between its first row (the
+    first ``trainer.log_interval`` updates after ``learning_starts``) and its last, so rollouts and updates alike."""
+    with open(Path(run_dir) / "train.csv") as f:
+        rows = list(csv.DictReader(f))
+    if len(rows) < 2:
+        return float("nan"), 0, 0
+    first, last = rows[0], rows[-1]
+    return (
+        float(last["wall_s"]) - float(first["wall_s"]),
+        int(last["env_steps"]) - int(first["env_steps"]),
+        int(last["updates"]) - int(first["updates"]),
+    )
+
+
+# ss-drl's DQN in the form of SB3's: plain DQN target (no double DQN) and no dueling head; same width and batch.
+SB3_FORM = ("agent.double_dqn=false", "agent.dueling=false")
+
+
+def _train_overrides(experiment: str, steps: int, learning_starts: int, max_steps: int, seed: int) -> list[str]:
+    big = 10**12
+    return [
+        f"+experiment={experiment}",
+        f"trainer.total_env_steps={learning_starts + steps}",
+        f"trainer.eval_interval={big}",
+        f"trainer.checkpoint_interval={big}",
+        f"trainer.log_interval={LOG_INTERVAL}",
+        f"trainer.torch_threads={torch.get_num_threads()}",
+        f"agent.learning_starts={learning_starts}",
+        f"env.max_steps={max_steps}",
+        "logger=csv",
+        f"seed={seed}",
+    ]
+
+
+def run_ssdrl(
+    experiment: str, steps: int, learning_starts: int, max_steps: int, seed: int = 0, overrides: Sequence[str] = ()
+) -> dict:
+    """One ss-drl training run; its training-phase and whole-run rates."""
+    from ss_drl.training.trainer import Trainer
+
+    cfg = compose_config(_train_overrides(experiment, steps, learning_starts, max_steps, seed) + list(overrides))
+    with tempfile.TemporaryDirectory(prefix="ssdrl-bench-") as run_dir:
+        summary = Trainer(cfg, run_dir).train()
+        seconds, env_steps, updates = train_phase_window(run_dir)
+    return {
+        "steps_per_s": env_steps / seconds,
+        "updates_per_s": updates / seconds,
+        "timed_steps": env_steps,
+        "updates": updates,
+        "whole_steps_per_s": summary["env_steps_per_s"],
+        "decisions": summary["smart_start_decisions"],
+    }
+
+
+def run_bare_update(agent_cfg, updates: int, seed: int = 0) -> dict:
+    """The ceiling of an eager-PyTorch trainer: updates/s of a bare DQN update in SB3's form, on SB3's network.
+
+    SB3's Q-network for this env (the 6 coordinates of state, achieved and desired goal -> MLP of the agent's hidden
+    widths -> 4 values: the least arithmetic at this width), a plain ``max_a Q'`` target from a copy, the same batch
+    size, Adam and gradient clipping; the batches are made up in advance. No env, no replay buffer, no TorchRL or
+    tensordict: only the PyTorch arithmetic that every update of either library runs. At the update-to-data ratio
+    compared, no trainer built on eager PyTorch can step the env faster than this rate allows on this machine.
+    """
+    import copy
+
+    torch.manual_seed(seed)
+    layers, width = [], 6
+    for size in agent_cfg.hidden:
+        layers += [torch.nn.Linear(width, int(size)), torch.nn.ReLU()]
+        width = int(size)
+    net = torch.nn.Sequential(*layers, torch.nn.Linear(width, 4))
+    target = copy.deepcopy(net).requires_grad_(False)
+    optimizer = torch.optim.Adam(net.parameters(), lr=float(agent_cfg.lr), fused=True)
+    gamma, clip, size = float(agent_cfg.gamma), float(agent_cfg.grad_clip), int(agent_cfg.batch_size)
+    batches = [
+        (
+            torch.rand(size, 6),
+            torch.randint(0, 4, (size, 1)),
+            torch.rand(size, 6),
+            torch.rand(size, 1),
+            torch.rand(size, 1) < 0.1,
+        )
+        for _ in range(min(updates, 64))
+    ]
+
+    def update(obs, action, next_obs, reward, terminated) -> None:
+        pred = net(obs).gather(-1, action)
+        with torch.no_grad():
+            td_target = reward + gamma * (~terminated).float() * target(next_obs).amax(-1, keepdim=True)
+        loss = torch.nn.functional.mse_loss(pred, td_target)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if clip > 0:
+            torch.nn.utils.clip_grad_norm_(net.parameters(), clip, foreach=True)
+        optimizer.step()
+
+    for batch in batches[:8]:  # warm-up
+        update(*batch)
+    start = time.perf_counter()
+    for i in range(updates):
+        update(*batches[i % len(batches)])
+    return {"updates_per_s": updates / (time.perf_counter() - start)}
+
+
+def sb3_available() -> bool:
+    try:
+        import stable_baselines3  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def sb3_kwargs(agent_cfg, her_cfg, learning_starts: int, total_steps: int) -> dict:
+    """SB3 ``DQN`` arguments matching an ss-drl agent/HER config (see the parity table the section prints)."""
+    from stable_baselines3 import HerReplayBuffer
+
+    return dict(
+        learning_rate=float(agent_cfg.lr),
+        buffer_size=int(agent_cfg.buffer_size),
+        learning_starts=int(learning_starts),
+        batch_size=int(agent_cfg.batch_size),
+        gamma=float(agent_cfg.gamma),
+        train_freq=int(agent_cfg.train_freq),
+        gradient_steps=int(agent_cfg.gradient_steps),
+        # ss-drl counts target copies in updates, SB3 in env steps.
+        target_update_interval=int(agent_cfg.target_update_interval)
+        * int(agent_cfg.train_freq)
+        // int(agent_cfg.gradient_steps),
+        exploration_initial_eps=float(agent_cfg.eps_start),
+        exploration_final_eps=float(agent_cfg.eps_end),
+        exploration_fraction=min(1.0, int(agent_cfg.eps_decay_steps) / total_steps),
+        max_grad_norm=float(agent_cfg.grad_clip) if agent_cfg.grad_clip > 0 else float("inf"),
+        policy_kwargs=dict(net_arch=[int(h) for h in agent_cfg.hidden]),
+        replay_buffer_class=HerReplayBuffer,
+        replay_buffer_kwargs=dict(n_sampled_goal=int(her_cfg.k), goal_selection_strategy=str(her_cfg.strategy)),
+    )
+
+
+def run_sb3(env_id: str, kwargs: dict, steps: int, learning_starts: int, max_steps: int, seed: int = 0) -> dict:
+    """One SB3 DQN + HER run: ``learn(learning_starts)`` untimed for the rate, then ``learn(steps)`` timed."""
+    import gymnasium
+    from stable_baselines3 import DQN
+
+    env = gymnasium.make(env_id, max_steps=max_steps)
+    model = DQN("MultiInputPolicy", env, device="cpu", seed=seed, verbose=0, **kwargs)
+    t0 = time.perf_counter()
+    model.learn(total_timesteps=learning_starts)
+    t1 = time.perf_counter()
+    updates_before = model._n_updates
+    model.learn(total_timesteps=steps, reset_num_timesteps=False)
+    t2 = time.perf_counter()
+    env.close()
+    updates = model._n_updates - updates_before
+    return {
+        "steps_per_s": steps / (t2 - t1),
+        "updates_per_s": updates / (t2 - t1),
+        "timed_steps": steps,
+        "updates": updates,
+        "whole_steps_per_s": (learning_starts + steps) / (t2 - t0),
+    }
+
+
+def bench_train(
+    repeats: int,
+    steps: int = 1_500,
+    max_steps: int | None = None,
+    learning_starts: int | None = None,
+    experiments: Sequence[str] = ("easy_dqn_her", "easy_ss_her"),
+    include_sb3: bool = True,
+    env_id: str = "SSDRL/Easy-v0",
+) -> str:
+    """Training throughput of ss-drl vs SB3 DQN + HER on the same maze and settings (median of repeats).
+
+    ``max_steps``/``learning_starts`` default to the experiment's ``env.max_steps`` and
+    ``max(agent.learning_starts, env.max_steps)``: SB3's ``HerReplayBuffer`` cannot sample before the first episode
+    has ended, which is only certain after ``max_steps`` env steps.
+    """
+    base = compose_config([f"+experiment={experiments[0]}"])
+    max_steps = int(base.env.max_steps if max_steps is None else max_steps)
+    if learning_starts is None:
+        learning_starts = max(int(base.agent.learning_starts), max_steps)
+    learning_starts = int(learning_starts)
+    agent, her = base.agent, base.her
+    out = [
+        f"## train: training throughput on {base.env.preset} (median of {repeats}; {steps} timed env steps after "
+        f"learning_starts={learning_starts}; torch threads {torch.get_num_threads()})",
+        "",
+    ]
+    have_sb3 = include_sb3 and sb3_available()
+    note = None
+    if include_sb3 and not have_sb3:
+        note = (
+            "> **Note:** stable-baselines3 is not installed, so the SB3 rows are skipped. Install it with "
+            '`pip install -c constraints.txt "stable-baselines3>=2.3"` (or `pip install -e ".[bench]"`).'
+        )
+
+    runs: dict[str, list[dict]] = {name: [] for name in experiments}
+    sb3_form = f"{experiments[0]}, SB3's form"
+    runs[sb3_form] = []
+    if have_sb3:
+        runs["sb3"] = []
+        kwargs = sb3_kwargs(agent, her, learning_starts, learning_starts + steps)
+    bare: list[dict] = []
+    # Warm-up (imports, allocator, first-call overheads): a short run of each, untimed.
+    run_ssdrl(experiments[0], min(steps, 40), min(learning_starts, 40), max_steps=min(max_steps, 40))
+    if have_sb3:
+        warm = dict(kwargs, learning_starts=min(learning_starts, 40))
+        run_sb3(env_id, warm, min(steps, 40), min(learning_starts, 40), max_steps=min(max_steps, 40))
+    # Interleaved, so that drifting load on a shared machine hits every method alike.
+    for _ in range(repeats):
+        runs[experiments[0]].append(run_ssdrl(experiments[0], steps, learning_starts, max_steps))
+        runs[sb3_form].append(run_ssdrl(experiments[0], steps, learning_starts, max_steps, overrides=SB3_FORM))
+        if have_sb3:
+            runs["sb3"].append(run_sb3(env_id, kwargs, steps, learning_starts, max_steps))
+        for name in experiments[1:]:
+            runs[name].append(run_ssdrl(name, steps, learning_starts, max_steps))
+        bare.append(run_bare_update(agent, steps))
+
+    def row(label: str, framework: str, results: list[dict]) -> list:
+        m = {key: median([r[key] for r in results]) for key in ("steps_per_s", "updates_per_s", "whole_steps_per_s")}
+        return [
+            label,
+            framework,
+            results[0]["timed_steps"],
+            results[0]["updates"],
+            fmt_rate(m["steps_per_s"]),
+            f"{m['updates_per_s']:.1f}",
+            fmt_rate(m["whole_steps_per_s"]),
+        ]
+
+    rows = [
+        row(f"`{experiments[0]}`", "ss-drl (TorchRL)", runs[experiments[0]]),
+        row(f"`{experiments[0]}` {' '.join(SB3_FORM)} (SB3's form)", "ss-drl (TorchRL)", runs[sb3_form]),
+    ]
+    if have_sb3:
+        rows.append(row("SB3 `DQN` + `HerReplayBuffer`", f"stable-baselines3 {sb3_version()}", runs["sb3"]))
+    for name in experiments[1:]:
+        rows.append(row(f"`{name}` (Smart Start on; for information)", "ss-drl (TorchRL)", runs[name]))
+    # At train_freq env steps per gradient_steps updates, the bare update rate bounds the env steps/s.
+    steps_per_update = int(agent.train_freq) / int(agent.gradient_steps)
+    bare_rate = median([r["updates_per_s"] for r in bare])
+    rows.append(
+        [
+            "bare PyTorch update of SB3's network (no env, no buffer, no TorchRL): the eager-PyTorch ceiling",
+            f"torch {torch.__version__}",
+            "-",
+            steps,
+            fmt_rate(bare_rate * steps_per_update),
+            f"{bare_rate:.1f}",
+            "-",
+        ]
+    )
+    headers = [
+        "run",
+        "framework",
+        "timed env steps",
+        "updates",
+        "train-phase env steps/s",
+        "updates/s",
+        "whole-run env steps/s",
+    ]
+    out += [markdown_table(headers, rows), ""]
+    if note:
+        out += [note, ""]
+    if have_sb3:
+        ours = median([r["steps_per_s"] for r in runs[experiments[0]]])
+        same_form = median([r["steps_per_s"] for r in runs[sb3_form]])
+        theirs = median([r["steps_per_s"] for r in runs["sb3"]])
+        out.append(f"- ratio ours/SB3 (train-phase env steps/s, `{experiments[0]}`): **{ours / theirs:.2f}x**")
+        out.append(
+            f"- ratio ours/SB3 with SB3's form of DQN (plain target, no dueling head): **{same_form / theirs:.2f}x**"
+        )
+        out.append(
+            f"- ceiling/SB3: **{bare_rate * steps_per_update / theirs:.2f}x**: at this update-to-data ratio no "
+            "trainer built on eager PyTorch steps the env faster than its bare update allows, env and buffer free"
+        )
+    for name in experiments[1:]:
+        decisions = median([r["decisions"] for r in runs[name]])
+        out.append(f"- `{name}`: {decisions:.0f} Smart Start decisions per run (one per episode start after the first)")
+    out.append(
+        "- whole-run = all env steps / wall time (ss-drl: the trainer's `env_steps_per_s`, which includes the "
+        "greedy evaluations at step 0 and at the end; SB3: both `learn` calls)"
+    )
+    parity = [
+        ["env", f"`BatchedMazeEnv({base.env.preset!r}, 1, max_steps={max_steps})`", f"`gymnasium.make({env_id!r})`"],
+        [
+            "network",
+            f"cell embeddings 2x{agent.embed_dim} -> MLP {list(agent.hidden)}, dueling={agent.dueling}",
+            f"3 flattened (row, col) pairs -> MLP net_arch={list(agent.hidden)}",
+        ],
+        ["batch / buffer", f"{agent.batch_size} / {agent.buffer_size}", f"{agent.batch_size} / {agent.buffer_size}"],
+        ["learning_starts", learning_starts, learning_starts],
+        [
+            "update-to-data",
+            f"train_freq={agent.train_freq}, gradient_steps={agent.gradient_steps}",
+            f"train_freq={agent.train_freq}, gradient_steps={agent.gradient_steps}",
+        ],
+        [
+            "target net",
+            f"hard copy every {agent.target_update_interval} updates",
+            f"every {agent.target_update_interval * agent.train_freq // agent.gradient_steps} env steps",
+        ],
+        ["HER", f"{her.strategy}, k={her.k}", f"{her.strategy}, n_sampled_goal={her.k}"],
+        [
+            "loss / target",
+            f"{agent.loss}, double DQN={agent.double_dqn}",
+            "smooth L1, plain DQN target",
+        ],
+    ]
+    out += ["", "Settings compared:", "", markdown_table(["", "ss-drl", "SB3"], parity)]
+    return "\n".join(out) + "\n"
+
+
+def sb3_version() -> str:
+    import stable_baselines3
+
+    return stable_baselines3.__version__
