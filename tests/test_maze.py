@@ -302,6 +302,19 @@ def test_random_maze_structure(height, width, scale, seed):
         assert dist[maze.goal] >= 0.9 * longest
 
 
+@pytest.mark.parametrize(("scale", "seed"), [(1, 2), (1, 3), (1, 4), (1, 5), (2, 2), (3, 4)])
+def test_random_maze_start_and_goal_come_from_two_bfs_sweeps(scale, seed):
+    """What random_maze's docstring says: S is a farthest free cell from (0, 0), G a farthest free cell from S; for
+    scale 1 (a tree) the S-G distance is then exactly the maze's diameter."""
+    maze = random_maze(11, 9, scale=scale, seed=seed)
+    from_corner = bfs(maze.walls, (0, 0))
+    assert from_corner[maze.start] == from_corner.max()
+    from_start = bfs(maze.walls, maze.start)
+    assert from_start[maze.goal] == from_start.max() == maze.shortest_path_length
+    if scale == 1:
+        assert maze.shortest_path_length == diameter(maze.walls)
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_random_maze_scale_one_is_perfect(seed):
     """A perfect maze: the free cells form a tree (connected, with exactly n_free - 1 adjacent free pairs)."""

@@ -62,28 +62,48 @@ def _train_cmd(run_dir: Path, *extra: str) -> list[str]:
     ]
 
 
+def _wait_for(condition, what: str, proc: subprocess.Popen, timeout_s: float) -> None:
+    """Poll ``condition`` until it holds; fail clearly if the child exits first or ``timeout_s`` passes."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if proc.poll() is not None:
+            pytest.fail(f"the training run exited (code {proc.returncode}) before {what}")
+        if time.monotonic() > deadline:
+            proc.kill()
+            proc.wait()
+            pytest.fail(f"no {what} within {timeout_s:.0f} s")
+        time.sleep(0.05)
+
+
 @pytest.mark.slow
 def test_sigterm_then_resume_equals_uninterrupted_run(tmp_path):
     full, cut = tmp_path / "full", tmp_path / "cut"
     subprocess.run(_train_cmd(full), check=True, capture_output=True, cwd=ROOT, timeout=600)
 
-    proc = subprocess.Popen(_train_cmd(cut), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.time() + 300
-    episodes = cut / EPISODES_FILE
-    while time.time() < deadline and proc.poll() is None:
-        if episodes.exists() and sum(1 for _ in episodes.open()) > 8:
-            break
-        time.sleep(0.05)
-    assert proc.poll() is None, "the run ended before it could be interrupted"
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode != 0
-    assert "SIGTERM" in err and "resume" in err
-    assert "Traceback" not in err
+    # Output goes to files, not pipes: a child blocked on a full pipe would never reach its checkpoint.
+    err_path = tmp_path / "cut.stderr"
+    with err_path.open("w") as err_file:
+        proc = subprocess.Popen(_train_cmd(cut), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=err_file, text=True)
+        # The first checkpoint (at 500 of 4000 env steps) is written atomically, after the CSV rows are flushed:
+        # once it exists the run is past its start-up (signal handlers installed) with 3500 steps still to go.
+        _wait_for((cut / CHECKPOINT_FILE).exists, "first checkpoint", proc, timeout_s=300)
+        assert proc.poll() is None, "the run ended before it could be interrupted"
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+            pytest.fail("the run did not stop within 120 s of SIGTERM")
+    err = err_path.read_text()
+    assert proc.returncode != 0, "the run completed although it was sent SIGTERM"
+    assert "SIGTERM" in err and "resume" in err, err
+    assert "Traceback" not in err, err
     assert (cut / CHECKPOINT_FILE).exists()
     assert not (cut / SUMMARY_FILE).exists()
     interrupted_at = torch.load(cut / CHECKPOINT_FILE, weights_only=False)["collector"]["env_steps"]
-    assert 0 < interrupted_at < 4000
+    assert 500 <= interrupted_at < 4000
+    assert len(rows_without_wall(cut / EPISODES_FILE)) > 1  # the interrupted run flushed its episodes
 
     resumed = subprocess.run(
         _train_cmd(cut, "trainer.resume=true"), capture_output=True, text=True, cwd=ROOT, timeout=600

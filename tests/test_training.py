@@ -1,4 +1,4 @@
-"""The training loop with Smart Start: eta = 0 equivalence, counts, guided phases, collected batches."""
+"""The training loop with Smart Start: no guided phase, no change; counts, guided phases, collected batches."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import torch
 from helpers import ROOT, compose_cfg
 
 from ss_drl.training.collector import MazeCollector
-from ss_drl.training.outputs import EPISODES_FILE
+from ss_drl.training.outputs import EPISODE_COLUMNS, EPISODES_FILE
 from ss_drl.training.trainer import Trainer
 
 SMALL = ["agent.learning_starts=100", "agent.batch_size=32", "agent.hidden=[32,32]", "agent.embed_dim=8"]
@@ -22,15 +22,45 @@ def episode_rows(run_dir: Path) -> list[list[str]]:
 
 
 @pytest.mark.slow
-def test_eta_zero_reproduces_the_run_without_smart_start(tmp_path):
+def test_smart_start_without_guided_phases_leaves_the_run_unchanged(tmp_path):
+    """Smart Start draws from its own generator, so until it takes a guided phase a run is the run without it.
+
+    A tiny eta builds the controller, wires it into the collector and draws at every episode start, yet (on this
+    seed) never takes a guided phase: its episodes.csv equals the one of the run without Smart Start. With eta = 1
+    the same seed takes guided phases and the run changes. (eta = 0 builds no controller at all.)
+    """
     common = ["trainer.total_env_steps=2500", "env.max_steps=200", *SMALL]
-    Trainer(compose_cfg("+experiment=easy_small_dqn_her", *common), tmp_path / "off").train()
-    Trainer(compose_cfg("+experiment=easy_small_ss_her", "smart_start.eta=0", *common), tmp_path / "eta0").train()
-    Trainer(compose_cfg("+experiment=easy_small_ss_her", *common), tmp_path / "on").train()
-    off, eta0, on = (episode_rows(tmp_path / d) for d in ("off", "eta0", "on"))
+    runs = {
+        "off": compose_cfg("+experiment=easy_small_dqn_her", *common),
+        "idle": compose_cfg("+experiment=easy_small_ss_her", "smart_start.eta=1e-9", *common),
+        "on": compose_cfg("+experiment=easy_small_ss_her", *common),
+    }
+    eta0 = compose_cfg("+experiment=easy_small_ss_her", "smart_start.eta=0", *common)
+    assert Trainer(eta0, tmp_path / "eta0").smart_start is None
+    trainers, summaries = {}, {}
+    for name, cfg in runs.items():
+        trainers[name] = Trainer(cfg, tmp_path / name)
+        generator_before = None
+        if trainers[name].smart_start is not None:
+            generator_before = trainers[name].smart_start.generator.get_state().clone()
+        summaries[name] = trainers[name].train()
+        if generator_before is not None:  # the controller did draw
+            assert not torch.equal(trainers[name].smart_start.generator.get_state(), generator_before), name
+    off, idle, on = (episode_rows(tmp_path / name) for name in runs)
+    guided = EPISODE_COLUMNS.index("smart_start")
     assert len(off) > 5
-    assert eta0 == off
-    assert on != off  # and Smart Start does change the run
+
+    idle_ss = trainers["idle"].smart_start
+    assert idle_ss is not None
+    assert int(idle_ss.episodes.sum()) == summaries["idle"]["episodes"] == len(idle) - 1  # it saw every episode
+    assert summaries["idle"]["smart_start_decisions"] == 0
+    assert all(row.split(",")[guided] == "0" for row in idle[1:])
+    assert idle == off
+
+    assert summaries["on"]["smart_start_decisions"] > 0
+    first_guided = next(i for i, row in enumerate(on) if i > 0 and row.split(",")[guided] == "1")
+    assert on[:first_guided] == off[:first_guided]  # identical up to the first guided phase (one env copy) ...
+    assert on != off  # ... which changes the run
 
 
 def _run_collector(maze: str, steps: int, num_envs: int = 1, eta: float = 1.0, guided_epsilon: float = 0.0):
@@ -104,6 +134,24 @@ def test_network_acts_only_on_steps_outside_the_guided_phase(monkeypatch):
     assert len(calls) <= batch.numel() - guided_steps
 
 
-def test_eta_zero_never_guides():
-    _, _, episodes = _run_collector("easy_small", 600, eta=0.0)
-    assert episodes and not any(e.smart_start for e in episodes)
+def test_smart_start_without_guided_phases_collects_the_same_transitions():
+    """In three env copies: a controller that draws at every episode start but takes no guided phase (tiny eta)
+    leaves the collected transitions exactly those of eta = 0 (no controller); eta = 1 changes them."""
+    keys = ["observation", "desired_goal", "action", ("next", "observation"), ("next", "reward"), ("next", "done")]
+    none, batch_none, episodes_none = _run_collector("easy_small", 600, num_envs=3, eta=0.0)
+    idle, batch_idle, episodes_idle = _run_collector("easy_small", 600, num_envs=3, eta=1e-9)
+    assert none.smart_start is None and idle.smart_start is not None
+    assert len(episodes_idle) > 5 and not any(e.smart_start for e in episodes_idle)
+    assert idle.smart_start.decisions == 0
+    assert int(idle.smart_start.episodes.sum()) == len(episodes_idle)  # the controller saw every episode end
+    for key in keys:
+        assert torch.equal(batch_idle[key], batch_none[key]), key
+
+    def ends(episodes):
+        return [(e.env_id, e.env_steps, e.length, e.success) for e in episodes]
+
+    assert ends(episodes_idle) == ends(episodes_none)
+
+    _, batch_on, episodes_on = _run_collector("easy_small", 600, num_envs=3, eta=1.0)
+    assert any(e.smart_start for e in episodes_on)
+    assert not torch.equal(batch_on["action"], batch_none["action"])

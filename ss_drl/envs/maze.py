@@ -196,7 +196,12 @@ def random_maze(height: int, width: int, scale: int = 1, seed: int | None = None
         scale: corridor width: each layout cell becomes a ``scale x scale`` block, as in Keulen's presets.
         seed: RNG seed; the same seed gives the same maze.
 
-    S is placed at one end of a longest shortest path (found by two BFS passes) and G at the other.
+    S and G come from two BFS sweeps of the final (scaled) grid: S is a free cell farthest from the top-left cell
+    (0, 0), which is always free, and G is a free cell farthest from S. For ``scale == 1`` the free cells form a
+    tree, on which two sweeps find the two ends of a longest shortest path exactly (the S-G distance is the maze's
+    diameter). For ``scale > 1`` the corridors are ``scale`` cells wide and the grid has cycles, so the sweeps carry
+    no such guarantee: G is a farthest cell from S, and the S-G distance is close to the diameter (equal to it on
+    the small mazes checked).
     """
     if height < 3 or width < 3:
         raise MazeError(f"random maze: height and width must be >= 3 (got {height}x{width})")
