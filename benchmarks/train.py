@@ -18,7 +18,6 @@ import torch
 
 from benchmarks.common import compose_config, fmt_rate, markdown_table, median
 
-
 #: Updates between train.csv rows in the benchmark runs: the rows time the training phase.
 LOG_INTERVAL = 10
 
