@@ -18,7 +18,8 @@ For a relabeled transition reward **and** terminated/done are recomputed for the
 is terminal, so the target never bootstraps past it.
 
 ``torchrl.data.HERReplayBuffer`` (torchrl 0.13/0.14) is not used: it takes the goal from the pre-action achieved
-goal, keeps stale terminated/done flags, and rescans the whole storage after every write (see ``tests/test_her.py``).
+goal and keeps stale terminated/done flags on a relabeled sample (both shown in ``tests/test_her.py``); in 0.14 it
+also rebuilds its episode index from the whole storage after every write, so each write costs O(stored).
 """
 
 from __future__ import annotations
