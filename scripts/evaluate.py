@@ -1,4 +1,7 @@
-"""Evaluate a run's final checkpoint: `python scripts/evaluate.py <run dir> [--episodes N] [--out PNG]`."""
+"""Evaluate a run's final checkpoint: `python scripts/evaluate.py <run dir> [--episodes N] [--out PNG]`.
+
+The same as the `ss-drl-evaluate` console script of an installed package.
+"""
 
 import sys
 

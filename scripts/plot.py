@@ -4,7 +4,8 @@ and results.md, from run or Hydra multirun directories.
 
     python scripts/plot.py multirun/2026-11-22/10-00-00 [more dirs] [--out OUT] [--smooth K] [--bootstrap N] [--seed S]
 
-All the logic lives in :mod:`ss_drl.analysis`; see ``ss_drl.analysis.plots.main``.
+All the logic lives in :mod:`ss_drl.analysis`; see ``ss_drl.analysis.plots.main``. An installed package runs
+the same as the ``ss-drl-plot`` console script.
 """
 
 import sys

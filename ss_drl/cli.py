@@ -1,4 +1,4 @@
-"""Entry points behind scripts/*.py: Hydra wiring and clean one-line errors."""
+"""Entry points behind the ``ss-drl-train`` console script and scripts/train.py: Hydra wiring and one-line errors."""
 
 from __future__ import annotations
 
@@ -8,11 +8,40 @@ from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from ss_drl.training.outputs import FAILED_FILE
 
-CONFIG_DIR = str(Path(__file__).resolve().parent.parent / "conf")
+_PACKAGE = Path(__file__).resolve().parent
+
+
+def config_dir() -> Path:
+    """The Hydra config directory: the copy installed with the package (``pip install .`` ships the checkout's
+    ``conf/`` as ``ss_drl/conf``), else ``conf/`` of the checkout the package lies in (scripts/*.py, editable
+    installs, PYTHONPATH), so that an edit to conf/*.yaml is seen there without reinstalling."""
+    for candidate in (_PACKAGE / "conf", _PACKAGE.parent / "conf"):
+        if (candidate / "config.yaml").is_file():
+            return candidate
+    raise FileNotFoundError(
+        f"ss-drl: no Hydra configs: neither {_PACKAGE / 'conf'} (installed package) nor {_PACKAGE.parent / 'conf'} "
+        "(checkout) holds config.yaml; reinstall ss-drl"
+    )
+
+
+class ValidateBeforeRun(Callback):
+    """Hydra callback (``hydra.callbacks`` in conf/config.yaml): check the config before Hydra creates the run
+    directory, so a refused run leaves nothing behind. Sweeps are checked per job instead (a refused job writes
+    FAILED in its directory and the others go on)."""
+
+    def on_run_start(self, config: DictConfig, **kwargs) -> None:
+        from ss_drl.training.config import ConfigError, validate_config
+
+        try:
+            validate_config(config)
+        except ConfigError as exc:
+            print(f"ss-drl: config error: {exc}", file=sys.stderr)
+            sys.exit(2)
 
 
 def _run_dir(cfg: DictConfig) -> Path:
@@ -28,8 +57,8 @@ def _is_multirun() -> bool:
     return HydraConfig.get().mode == RunMode.MULTIRUN
 
 
-@hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")
 def _train(cfg: DictConfig):
+    """Hydra's task function: one run, or one job of a sweep."""
     from ss_drl.training.config import ConfigError
     from ss_drl.training.trainer import TrainingInterrupted, train
 
@@ -71,4 +100,9 @@ def _fail(message: str, code: int):
 
 
 def train_main() -> None:
-    _train()
+    """``ss-drl-train +experiment=NAME [key=value ...]`` (also ``-m`` sweeps): what scripts/train.py runs."""
+    try:
+        conf = config_dir()
+    except FileNotFoundError as exc:
+        sys.exit(str(exc))
+    hydra.main(config_path=str(conf), config_name="config", version_base="1.3")(_train)()

@@ -121,8 +121,42 @@ def test_config_error_is_one_clean_line(tmp_path, name, overrides, key):
     assert last.startswith("ss-drl: config error:"), last
     if name == "maze_file":
         assert f"{bad_maze}:2:2" in last
-    for output in (EPISODES_FILE, EVAL_FILE, SUMMARY_FILE, CHECKPOINT_FILE):
-        assert not (run_dir / output).exists(), f"{output} written despite the config error"
+    assert not run_dir.exists(), "a refused run left its run directory behind"
+
+
+# --- (b2) a refused run leaves nothing behind, and never touches a directory it did not create ---
+def snapshot(directory: Path) -> dict[str, bytes]:
+    return {p.relative_to(directory).as_posix(): p.read_bytes() for p in sorted(directory.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("resume", ["path", "hydra_run_dir"])
+def test_refused_resume_leaves_the_existing_run_untouched(tmp_path, resume):
+    """``trainer.resume=<dir>`` runs Hydra in the default layout under the working directory (which a refused run
+    must not create); ``trainer.resume=true hydra.run.dir=<dir>`` points Hydra at the existing directory."""
+    existing = tmp_path / "existing_run"
+    (existing / ".hydra").mkdir(parents=True)
+    (existing / ".hydra" / "config.yaml").write_text("seed: 0\n")
+    (existing / "cli.log").write_text("")
+    (existing / EPISODES_FILE).write_text(",".join(EPISODE_COLUMNS) + "\n")
+    (existing / CHECKPOINT_FILE).write_bytes(b"not read: the config is refused first")
+    before = snapshot(existing)
+    if resume == "path":
+        overrides = [f"trainer.resume={existing}"]
+    else:
+        overrides = ["trainer.resume=true", f"hydra.run.dir={existing}"]
+    command = [sys.executable, ROOT / "scripts" / "train.py", "+experiment=easy_small_dqn_her", "agent.gamma=1.5"]
+    proc = subprocess.run(
+        [*command, *overrides],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1].startswith("ss-drl: config error: agent.gamma"), proc.stderr
+    assert snapshot(existing) == before, "a refused run changed a run directory it did not create"
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == ["existing_run"], f"a refused run left {left} behind (outputs/<experiment>/seed<seed>/<time>/?)"
 
 
 # --- (c) Smart Start fills the ss_* columns and draws its figure ---

@@ -1,16 +1,23 @@
-"""Hydra multirun through the joblib launcher, failure isolation, W&B that never blocks training."""
+"""Hydra multirun through the joblib launcher and through hydra-submitit-launcher (its local executor, and the SLURM
+config up to sbatch), failure isolation, W&B that never blocks training and needs no network."""
 
 from __future__ import annotations
 
+import ipaddress
 import json
+import os
+import socket
 import subprocess
 import sys
+import threading
 import warnings
+from pathlib import Path
 
 import pytest
 from helpers import ROOT, compose_cfg
+from omegaconf import OmegaConf
 
-from ss_drl.training.outputs import EPISODES_FILE, SUMMARY_FILE
+from ss_drl.training.outputs import EPISODES_FILE, FAILED_FILE, SUMMARY_FILE
 from ss_drl.training.trainer import Trainer
 
 TINY = [
@@ -23,57 +30,233 @@ TINY = [
 ]
 
 
-@pytest.mark.slow
-def test_joblib_multirun_isolates_a_failing_job_and_plot_skips_it(tmp_path):
-    sweep = tmp_path / "sweep"
-    result = subprocess.run(
+def sweep(sweep_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
+    """``scripts/train.py -m`` over easy_small DQN+HER with a tiny budget; returns the finished process."""
+    return subprocess.run(
         [
             sys.executable,
             "scripts/train.py",
             "-m",
             "+experiment=easy_small_dqn_her",
-            "seed=0,1",
-            "agent.gamma=0.9,1.5",  # the gamma=1.5 jobs fail validation
+            *overrides,
             *TINY,
-            f"hydra.sweep.dir={sweep}",
+            f"hydra.sweep.dir={sweep_dir}",
         ],
         cwd=ROOT,
         capture_output=True,
         text=True,
         timeout=600,
     )
-    assert result.returncode == 0, result.stderr
-    assert "Launching 4 jobs locally" not in result.stdout  # the joblib launcher ran them, not the basic one
-    jobs = sorted(p for p in sweep.iterdir() if p.is_dir() and not p.name.startswith("."))
-    assert len(jobs) == 4
-    done = [j for j in jobs if (j / SUMMARY_FILE).exists()]
-    failed = [j for j in jobs if (j / "FAILED").exists()]
-    assert len(done) == 2 and len(failed) == 2
-    assert all("agent.gamma" in (j / "FAILED").read_text() for j in failed)
-    assert {json.loads((j / SUMMARY_FILE).read_text())["seed"] for j in done} == {0, 1}
 
+
+def check_sweep(sweep_dir: Path, names: dict[str, float], launcher: str) -> list[Path]:
+    """The sweep layout ``<sweep dir>/<num>_<experiment>_seed<seed>/`` with one directory per job, each run by
+    ``launcher``; the gamma=1.5 jobs failed validation and wrote FAILED, the others completed. Returns the job dirs."""
+    jobs = sorted(p for p in sweep_dir.iterdir() if p.is_dir() and not p.name.startswith("."))
+    assert [j.name for j in jobs] == sorted(names)
+    for job in jobs:
+        hydra_cfg = OmegaConf.load(job / ".hydra" / "hydra.yaml").hydra
+        assert hydra_cfg.launcher._target_ == launcher
+        if names[job.name] > 1:
+            assert not (job / SUMMARY_FILE).exists() and not (job / EPISODES_FILE).exists()
+            assert "agent.gamma" in (job / FAILED_FILE).read_text()
+        else:
+            assert not (job / FAILED_FILE).exists()
+            summary = json.loads((job / SUMMARY_FILE).read_text())
+            assert summary["completed"] is True
+            assert job.name.endswith(f"_seed{summary['seed']}")
+    return jobs
+
+
+def check_plot_skips_failed(sweep_dir: Path, failed: int) -> None:
     plot = subprocess.run(
-        [sys.executable, "scripts/plot.py", str(sweep), "--bootstrap", "50"],
+        [sys.executable, "scripts/plot.py", str(sweep_dir), "--bootstrap", "50"],
         cwd=ROOT,
         capture_output=True,
         text=True,
         timeout=300,
     )
     assert plot.returncode == 0, plot.stderr
-    assert plot.stderr.count("skipping") == 2
-    assert (sweep / "plots" / "results.md").exists()
+    assert plot.stderr.count("skipping") == failed, plot.stderr
+    assert (sweep_dir / "plots" / "results.md").exists()
+
+
+@pytest.mark.slow
+def test_joblib_multirun_isolates_a_failing_job_and_plot_skips_it(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    result = sweep(sweep_dir, "seed=0,1", "agent.gamma=0.9,1.5")  # the gamma=1.5 jobs fail validation
+    assert result.returncode == 0, result.stderr
+    # The joblib launcher (conf/hydra/launcher/local.yaml) ran the jobs in parallel worker processes.
+    assert "Joblib.Parallel(n_jobs=-1" in result.stdout and "is launching 4 jobs" in result.stdout, result.stdout
+    names = {"0_easy_small_dqn_her_seed0": 0.9, "1_easy_small_dqn_her_seed0": 1.5}
+    names |= {"2_easy_small_dqn_her_seed1": 0.9, "3_easy_small_dqn_her_seed1": 1.5}
+    jobs = check_sweep(sweep_dir, names, "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher")
+    done = [j for j in jobs if (j / SUMMARY_FILE).exists()]
+    assert {json.loads((j / SUMMARY_FILE).read_text())["seed"] for j in done} == {0, 1}
+    check_plot_skips_failed(sweep_dir, failed=2)
+
+
+@pytest.mark.slow
+def test_submitit_local_multirun_isolates_a_failing_job(tmp_path):
+    """The SLURM launcher's code path (hydra-submitit-launcher: pickled jobs, one process each, results collected
+    back) through its local executor: the same layout and failure isolation as the joblib sweeps."""
+    sweep_dir = tmp_path / "sweep"
+    result = sweep(sweep_dir, "hydra/launcher=submitit_local", "seed=0", "agent.gamma=0.9,1.5")
+    assert result.returncode == 0, result.stderr
+    target = "hydra_plugins.hydra_submitit_launcher.submitit_launcher.LocalLauncher"
+    names = {"0_easy_small_dqn_her_seed0": 0.9, "1_easy_small_dqn_her_seed0": 1.5}
+    jobs = check_sweep(sweep_dir, names, target)
+    # Each job ran in its own submitit process, which ran the job and pickled its result back.
+    submitit_ids = {OmegaConf.load(j / ".hydra" / "hydra.yaml").hydra.job.id for j in jobs}
+    assert len(submitit_ids) == 2
+    for job_id in submitit_ids:
+        assert (sweep_dir / ".submitit" / job_id / f"{job_id}_0_result.pkl").is_file(), job_id
+    check_plot_skips_failed(sweep_dir, failed=1)
+
+
+def test_slurm_launcher_config_submits_an_sbatch_array(tmp_path, monkeypatch):
+    """conf/hydra/launcher/slurm.yaml through the plugin's own launch code, on a machine with fake srun/sbatch:
+    the config composes, submitit accepts its parameters, and the sbatch script is a job array that runs each job
+    under this interpreter with the configured limits."""
+    import submitit.slurm.slurm as submitit_slurm
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from ss_drl.cli import _train
+
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    script = tmp_path / "submitted.sh"
+    (bin_dir / "srun").write_text("#!/bin/sh\nexit 0\n")
+    (bin_dir / "sbatch").write_text(f'#!/bin/sh\ncp "$1" {script}\necho "Submitted batch job 4242"\n')
+    for tool in bin_dir.iterdir():
+        tool.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+
+    class Submitted(Exception):
+        pass
+
+    def results(job):  # the launcher waits for the jobs' results: stop there, sbatch has run
+        raise Submitted(job.job_id)
+
+    monkeypatch.setattr(submitit_slurm.SlurmJob, "results", results)
+    sweep_dir = tmp_path / "sweep"
+    overrides = ["hydra/launcher=slurm", "hydra.launcher.partition=debug", f"hydra.sweep.dir={sweep_dir}"]
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=["+experiment=easy_small_dqn_her", *overrides], return_hydra_config=True)
+    launcher = instantiate(cfg.hydra.launcher)
+    assert type(launcher).__name__ == "SlurmLauncher"
+    launcher.setup(hydra_context=None, task_function=_train, config=cfg)
+    with pytest.raises(Submitted, match="4242_0"):
+        launcher.launch([["seed=0"], ["seed=1"]], initial_job_idx=0)
+
+    sbatch = script.read_text()
+    for line in (
+        "#SBATCH --array=0-1%2",  # two jobs, at most min(array_parallelism, 2) at once
+        "#SBATCH --partition=debug",
+        "#SBATCH --time=240",
+        "#SBATCH --mem=4GB",
+        "#SBATCH --cpus-per-task=1",
+        "#SBATCH --ntasks-per-node=1",
+        f"#SBATCH --output={sweep_dir}/.submitit/%A_%a/%A_%a_0_log.out",
+    ):
+        assert line in sbatch.splitlines(), f"{line!r} not in\n{sbatch}"
+    assert f"{sys.executable} -u -m submitit.core._submit" in sbatch
+    for task in (0, 1):
+        assert (sweep_dir / ".submitit" / f"4242_{task}" / f"4242_{task}_submitted.pkl").is_file()
 
 
 def _cfg(*overrides):
     return compose_cfg("+experiment=easy_small_dqn_her", *TINY, *overrides)
 
 
-def test_wandb_offline_needs_no_network(tmp_path, monkeypatch):
+class NoNetwork:
+    """Blocks and records every connection that leaves this machine: in this process at ``socket.connect``, and in
+    child processes (wandb-core) through HTTP(S)/ALL proxy variables that point at a local listener which records
+    and drops each connection."""
+
+    def __init__(self, monkeypatch):
+        self.blocked: list = []
+        self.proxied = 0
+        self._server = socket.create_server(("127.0.0.1", 0))
+        self._server.settimeout(0.2)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+        proxy = f"http://127.0.0.1:{self._server.getsockname()[1]}"
+        for name in ("HTTP_PROXY", "HTTPS_PROXY", "ALL_PROXY", "http_proxy", "https_proxy", "all_proxy"):
+            monkeypatch.setenv(name, proxy)
+        for name in ("NO_PROXY", "no_proxy"):
+            monkeypatch.delenv(name, raising=False)
+        real_connect = socket.socket.connect
+
+        def connect(sock, address):
+            if sock.family == socket.AF_UNIX or self._is_local(address):
+                return real_connect(sock, address)
+            self.blocked.append(address)
+            raise OSError(f"network blocked by the test: connect to {address}")
+
+        monkeypatch.setattr(socket.socket, "connect", connect)
+
+    @staticmethod
+    def _is_local(address) -> bool:
+        host = address[0] if isinstance(address, tuple) else address
+        if host == "localhost":
+            return True
+        try:
+            return ipaddress.ip_address(host).is_loopback
+        except ValueError:
+            return False
+
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self._server.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            self.proxied += 1
+            conn.close()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self._server.close()
+
+
+@pytest.fixture
+def no_network(monkeypatch):
+    guard = NoNetwork(monkeypatch)
+    yield guard
+    guard.close()
+
+
+def test_no_network_guard_blocks_and_records(no_network):
+    with pytest.raises(OSError, match="network blocked"):
+        socket.create_connection(("192.0.2.1", 443), timeout=1)  # TEST-NET-1: a remote address
+    assert no_network.blocked == [("192.0.2.1", 443)]
+    with socket.create_connection(("127.0.0.1", int(os.environ["HTTPS_PROXY"].rsplit(":", 1)[1])), timeout=5):
+        pass
+    no_network.close()
+    assert no_network.proxied == 1
+
+
+def test_wandb_offline_needs_no_network(tmp_path, monkeypatch, no_network):
     monkeypatch.setenv("WANDB_SILENT", "true")
     monkeypatch.setenv("WANDB_DIR", str(tmp_path))
-    summary = Trainer(_cfg("logger=wandb", "logger.mode=offline"), tmp_path / "run").train()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        summary = Trainer(_cfg("logger=wandb", "logger.mode=offline"), tmp_path / "run").train()
     assert summary["completed"]
-    assert list((tmp_path / "run").rglob("offline-run-*")), "no offline W&B run was written"
+    assert not [w for w in caught if "W&B is off" in str(w.message)], "wandb did not start"
+    no_network.close()
+    assert no_network.blocked == [] and no_network.proxied == 0, "W&B offline tried to reach the network"
+    # The offline run holds the logged metrics (its record log names each metric key), ready for `wandb sync`.
+    (record_log,) = (tmp_path / "run").glob("wandb/offline-run-*/run-*.wandb")
+    records = record_log.read_bytes()
+    for key in ("train/return", "train/length", "train/loss", "eval/length", "eval/greedy_accuracy"):
+        assert key.encode() in records, f"{key} not in {record_log}"
 
 
 def test_failing_wandb_init_falls_back_to_csv(tmp_path, monkeypatch):
