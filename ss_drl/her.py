@@ -54,7 +54,11 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         strategy: str = "future",
         k: int = 4,
         generator: torch.Generator | None = None,
+        n_step: int = 1,
+        gamma: float = 1.0,
     ):
+        if n_step < 1:
+            raise ValueError(f"n_step must be >= 1 (got {n_step})")
         if strategy not in STRATEGIES:
             raise ValueError(f"unknown HER strategy {strategy!r} (allowed: {', '.join(STRATEGIES)})")
         if k < 0:
@@ -69,6 +73,7 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         self.strategy = strategy
         self.k = int(k)
         self.generator = generator
+        self.n_step, self.gamma = int(n_step), float(gamma)
         shape = (self.rows, self.num_envs)
         self.ep_start = torch.zeros(shape, dtype=torch.int64)  # absolute row of the slot's episode start
         self.ep_end = torch.full(shape, -1, dtype=torch.int64)  # absolute row of its last step; -1 while running
@@ -129,8 +134,15 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         relabeled = torch.zeros(batch_size, dtype=torch.bool)
         relabeled[:n_her] = True
         data.set("relabeled", relabeled)  # which items carry a relabeled goal (the first n_her)
-        if n_her == 0:
-            return data, info
+        if n_her > 0:
+            self._relabel(data, info, n_her)
+        if self.n_step > 1:
+            self._n_step(data, torch.as_tensor(info["index"]))
+        else:
+            data.set("n_steps", torch.ones(batch_size, 1, dtype=torch.int64))
+        return data, info
+
+    def _relabel(self, data: TensorDictBase, info: dict, n_her: int) -> None:
         new_goal = self.sample_goals(torch.as_tensor(info["index"])[:n_her])
         # ``data`` is a gathered copy, so its leaves are relabeled in place (cheaper than tensordict writes).
         nxt = data.get("next")
@@ -142,7 +154,47 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         nxt.get("terminated")[:n_her] = reached
         nxt.get("truncated")[:n_her] = truncated
         nxt.get("done")[:n_her] = reached | truncated
-        return data, info
+
+    def _n_step(self, data: TensorDictBase, index: torch.Tensor) -> None:
+        """Turn each sampled transition into an n-step one, for its (possibly relabeled) goal.
+
+        From step t, the window runs over the steps t, ..., t + m - 1 of the same episode and copy, where m <= n stops
+        at the first step that reaches the goal (terminal), at the episode's last step and at the newest stored step:
+        never past the end of an episode. Each step's reward is recomputed for the sample's goal (1 on reaching it,
+        which the env's reward is for G too). The sample then holds ``next.reward`` = sum_j gamma^j r_j,
+        ``next.observation`` = the state after the window's last step, ``next.terminated``/``done`` = the goal was
+        reached in the window, ``next.truncated`` = the window ended at the episode's time limit, and ``n_steps`` = m
+        (the target bootstraps with gamma^m).
+        """
+        n = self.n_step
+        row, env = index // self.num_envs, index % self.num_envs
+        t = self._absolute_row(row)
+        end = self.ep_end[row, env]
+        end = torch.where(end < 0, self.rows_written - 1, end)  # running episode: up to the newest stored step
+        offsets = torch.arange(n)
+        rows = t.unsqueeze(1) + offsets  # (B, n) absolute rows of the window
+        in_episode = rows <= end.unsqueeze(1)
+        slots = (torch.minimum(rows, end.unsqueeze(1)) % self.rows) * self.num_envs + env.unsqueeze(1)
+        achieved = self.achieved_goals(slots)  # (B, n)
+        reached = (achieved == data.get("desired_goal").unsqueeze(1)) & in_episode
+        before = torch.cumsum(reached.long(), dim=1) - reached.long()  # goals reached before each step
+        alive = in_episode & (before == 0)  # the window's steps
+        m = alive.sum(dim=1)  # >= 1: step t itself is always in it
+        hit = reached & alive
+        discounts = self.gamma ** offsets.to(torch.float32)
+        reward = (hit.to(torch.float32) * discounts).sum(dim=1, keepdim=True)
+        terminated = hit.any(dim=1, keepdim=True)
+        last = m - 1
+        last_slot = slots.gather(1, last.unsqueeze(1)).squeeze(1)
+        storage = self._storage._storage
+        truncated = storage.get(("next", "truncated"))[last_slot].reshape(-1, 1) & ~terminated
+        nxt = data.get("next")
+        nxt.set("observation", achieved.gather(1, last.unsqueeze(1)).squeeze(1))
+        nxt.set("reward", reward)
+        nxt.set("terminated", terminated)
+        nxt.set("truncated", truncated)
+        nxt.set("done", terminated | truncated)
+        data.set("n_steps", m.unsqueeze(1))
 
     def sample_goals(self, index: torch.Tensor) -> torch.Tensor:
         """New goals for the transitions in storage slots ``index`` by the buffer's strategy."""

@@ -43,6 +43,7 @@ def random_batch(n_cells: int, size: int = 64, seed: int = 0) -> TensorDict:
                 "done": terminated,
             },
             "relabeled": torch.zeros(size, dtype=torch.bool),
+            "n_steps": torch.ones(size, 1, dtype=torch.int64),
         },
         batch_size=(size,),
     )
@@ -182,3 +183,54 @@ def test_advantage_learning_target_by_hand():
     # alpha = 0 is TorchRL's DQNLoss again
     agent.loss.advantage_learning = 0.0
     torch.testing.assert_close(agent.loss(batch.clone())["loss"], reference_loss(agent, batch))
+
+
+def test_n_step_target_discounts_by_gamma_to_the_window_length_by_hand():
+    agent = make_agent("agent.double_dqn=false", "agent.loss=l2", "agent.gamma=0.9")
+    batch = random_batch(agent.maze.n_cells)
+    steps = torch.randint(1, 5, (64, 1), generator=torch.Generator().manual_seed(1))
+    batch.set("n_steps", steps)
+    target_net, online = agent.loss.target_value_network, agent.q_network
+    with torch.no_grad():
+        nxt = batch["next"]
+        bootstrap = target_net(nxt["observation"], nxt["desired_goal"]).max(-1).values
+        live = (~nxt["terminated"].squeeze(-1)).float()
+        y = nxt["reward"].squeeze(-1) + 0.9 ** steps.squeeze(-1).float() * live * bootstrap
+        pred = online(batch["observation"], batch["desired_goal"])[torch.arange(64), batch["action"]]
+        expected = ((pred - y) ** 2).mean()
+    torch.testing.assert_close(agent.loss(batch.clone())["loss"], expected)
+
+
+def test_clip_targets_keeps_targets_in_the_feasible_range():
+    agent = make_agent("agent.clip_targets=true", "agent.double_dqn=false", "agent.loss=l2")
+    assert agent.loss.value_range == (0.0, 1.0)  # 0/1 rewards: no value below 0 or above 1
+    with torch.no_grad():  # a target network whose values are far out of range
+        agent.loss.target_value_network.network.advantage.bias.fill_(5.0)
+        agent.loss.target_value_network.network.value.bias.fill_(5.0)
+    batch = random_batch(agent.maze.n_cells)
+    with torch.no_grad():
+        pred = agent.q_network(batch["observation"], batch["desired_goal"])[torch.arange(64), batch["action"]]
+    # Every bootstrapped target is clipped to 1, and a terminal one is its reward (1).
+    expected = ((pred - 1.0) ** 2).mean()
+    torch.testing.assert_close(agent.loss(batch.clone())["loss"], expected)
+
+
+@pytest.mark.parametrize(("step_cost", "gamma", "max_steps", "low"), [(1.0, 1.0, 50, -50.0), (1.0, 0.5, 3, -1.75)])
+def test_value_range_of_the_cost_form_by_hand(step_cost, gamma, max_steps, low):
+    agent = make_agent(f"agent.step_cost={step_cost}", f"agent.gamma={gamma}")
+    assert agent.value_range(max_steps) == (pytest.approx(low), 1.0 - step_cost)
+
+
+def test_step_cost_counts_every_step_of_the_n_step_window():
+    agent = make_agent("agent.step_cost=1", "agent.gamma=0.5")
+    batch = random_batch(agent.maze.n_cells)
+    batch.set("n_steps", torch.full((64, 1), 3))
+    seen = []
+    agent.loss.forward = lambda td: (
+        seen.append(td.get(("next", "reward")).clone())
+        or TensorDict(loss=torch.zeros((), requires_grad=True), q_mean=torch.zeros(()), td_abs=torch.zeros(()))
+    )
+    agent.replay_buffer.sample = lambda: batch.clone()
+    agent.update()
+    # r - 1 on each of 3 steps, discounted: r_sum - (1 + 0.5 + 0.25)
+    torch.testing.assert_close(seen[0], batch["next", "reward"] - 1.75)

@@ -603,3 +603,102 @@ def test_state_dict_round_trip_gives_identical_samples(strategy):
         b.generator.manual_seed(44)
         goals.append(b.sample_goals(torch.arange(12)))
     assert torch.equal(goals[0], goals[1])
+
+
+# --- n-step targets --------------------------------------------------------------------------------------------------
+# One copy, G = 15, gamma = 0.5, n = 3. Episode A: rows 0-4, next cells 11..15, enters G at row 4 (terminated).
+# Episode B: rows 5-7, next cells 21..23, cut by the time limit at row 7 (truncated). Episode C: rows 8-9, next cells
+# 31, 32, still running.
+N_STEP_NEXT = [11, 12, 13, 14, 15, 21, 22, 23, 31, 32]
+N_STEP_EPISODES = [range(0, 5), range(5, 8), range(8, 10)]
+
+
+def n_step_buffer(strategy: str, k: int) -> HindsightReplayBuffer:
+    buf = HindsightReplayBuffer(
+        64, 1, 512, strategy=strategy, k=k, generator=torch.Generator().manual_seed(3), n_step=3, gamma=0.5
+    )
+    terminated = [t == 4 for t in range(10)]
+    truncated = [t == 7 for t in range(10)]
+    buf.extend(make_batch(N_STEP_NEXT, terminated=terminated, truncated=truncated, goal=15))
+    return buf
+
+
+def expected_n_step(row: int, goal: int, n: int = 3, gamma: float = 0.5) -> tuple[int, float, bool, bool, int]:
+    """(next cell, reward, terminated, truncated, m) by walking the episode table above."""
+    episode = next(e for e in N_STEP_EPISODES if row in e)
+    reward, m = 0.0, 0
+    for j, t in enumerate(range(row, min(row + n, episode.stop))):
+        m = j + 1
+        if N_STEP_NEXT[t] == goal:
+            return N_STEP_NEXT[t], reward + gamma**j, True, False, m
+    last = row + m - 1
+    return N_STEP_NEXT[last], reward, False, last == 7, m
+
+
+def check_n_step_sample(buf: HindsightReplayBuffer) -> list[tuple[int, int]]:
+    data, info = buf.sample(return_info=True)
+    rows = torch.as_tensor(info["index"]).tolist()
+    nxt = data["next"]
+    seen = []
+    for i, row in enumerate(rows):
+        goal = int(data["desired_goal"][i])
+        cell, reward, terminated, truncated, m = expected_n_step(row, goal)
+        assert int(nxt["observation"][i]) == cell, (row, goal)
+        assert float(nxt["reward"][i, 0]) == pytest.approx(reward), (row, goal)
+        assert bool(nxt["terminated"][i, 0]) == terminated, (row, goal)
+        assert bool(nxt["truncated"][i, 0]) == truncated, (row, goal)
+        assert bool(nxt["done"][i, 0]) == (terminated or truncated)
+        assert int(data["n_steps"][i, 0]) == m, (row, goal)
+        assert int(data["observation"][i]) == N_STEP_NEXT[row] - 1  # the transition's own start is kept
+        seen.append((row, goal))
+    return seen
+
+
+def test_n_step_targets_for_the_real_goal_by_hand():
+    buf = n_step_buffer("future", k=0)
+    seen = set(check_n_step_sample(buf))
+    data, info = buf.sample(return_info=True)
+    by_row = {int(r): i for i, r in enumerate(torch.as_tensor(info["index"]).tolist())}
+    nxt = data["next"]
+    # Written out: from row 2 the window reaches G at its third step; from row 3 at its second.
+    assert (int(nxt["observation"][by_row[2]]), float(nxt["reward"][by_row[2], 0])) == (15, 0.25)
+    assert int(data["n_steps"][by_row[2], 0]) == 3 and bool(nxt["terminated"][by_row[2], 0])
+    assert (float(nxt["reward"][by_row[3], 0]), int(data["n_steps"][by_row[3], 0])) == (0.5, 2)
+    # Row 0: three steps, no goal, bootstraps from cell 13.
+    assert (int(nxt["observation"][by_row[0]]), int(data["n_steps"][by_row[0], 0])) == (13, 3)
+    assert not bool(nxt["terminated"][by_row[0], 0])
+    # Row 6: the episode is cut after row 7: two steps, truncated, from cell 23; never into episode C.
+    assert (int(nxt["observation"][by_row[6]]), int(data["n_steps"][by_row[6], 0])) == (23, 2)
+    assert bool(nxt["truncated"][by_row[6], 0]) and not bool(nxt["terminated"][by_row[6], 0])
+    # Row 8: the running episode holds two stored steps: the window stops at the newest.
+    assert (int(nxt["observation"][by_row[8]]), int(data["n_steps"][by_row[8], 0])) == (32, 2)
+    assert {row for row, _ in seen} == set(range(10))
+
+
+def test_n_step_targets_for_relabeled_goals_by_hand():
+    """'episode' goals can lie before the transition: such a goal is never reached, and the window still stops at
+    the episode's end. Every sampled item is checked against the table."""
+    buf = n_step_buffer("episode", k=1000)
+    seen = set()
+    for _ in range(4):
+        seen |= set(check_n_step_sample(buf))
+    # A relabeled transition whose episode ends inside its window without reaching the goal (row 6, goal 21).
+    assert (6, 21) in seen
+    assert expected_n_step(6, 21) == (23, 0.0, False, True, 2)
+    # And one that reaches a relabeled goal inside the window (row 5, goal 23: on its third step).
+    assert (5, 23) in seen
+    assert expected_n_step(5, 23) == (23, 0.25, True, False, 3)
+
+
+def test_n_step_one_keeps_td0():
+    buf = HindsightReplayBuffer(64, 1, 256, k=0, generator=torch.Generator().manual_seed(0))
+    buf.extend(make_batch(N_STEP_NEXT, terminated=[t == 4 for t in range(10)], goal=15))
+    data, info = buf.sample(return_info=True)
+    assert (data["n_steps"] == 1).all()
+    rows = torch.as_tensor(info["index"])
+    assert (data["next", "observation"] == torch.tensor(N_STEP_NEXT)[rows]).all()
+
+
+def test_n_step_must_be_positive():
+    with pytest.raises(ValueError, match="n_step must be >= 1"):
+        HindsightReplayBuffer(64, 1, 8, n_step=0)

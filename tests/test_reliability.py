@@ -153,14 +153,19 @@ def test_nan_loss_stops_the_run_and_keeps_the_last_checkpoint(tmp_path, monkeypa
     def poisoned(observation, desired_goal):
         out = original(observation, desired_goal)
         if trainer.collector.env_steps >= 900 and torch.is_grad_enabled():
+            calls.setdefault("first_update", trainer.agent.updates)  # the update whose loss turns NaN
             calls["n"] += 1
             return out * float("nan")
         return out
 
     monkeypatch.setattr(network, "forward", poisoned)
-    with pytest.raises(FloatingPointError, match="non-finite"):
+    with pytest.raises(FloatingPointError, match="non-finite") as stop:
         trainer.train()
     assert calls["n"] >= 1
+    # The loss is read at the logging cadence, not per update: the run stops within one logging period, and the
+    # message names the first update whose loss was not finite.
+    assert f"non-finite DQN loss (nan) at update {calls['first_update']}" in str(stop.value)
+    assert trainer.agent.updates - calls["first_update"] <= trainer.log_interval
     state = torch.load(tmp_path / CHECKPOINT_FILE, weights_only=False)
     assert 0 < state["collector"]["env_steps"] <= 900
     params = state["agent"]["loss"]

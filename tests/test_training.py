@@ -155,3 +155,41 @@ def test_smart_start_without_guided_phases_collects_the_same_transitions():
     _, batch_on, episodes_on = _run_collector("easy_small", 600, num_envs=3, eta=1.0)
     assert any(e.smart_start for e in episodes_on)
     assert not torch.equal(batch_on["action"], batch_none["action"])
+
+
+def test_train_csv_rows_every_log_interval_updates(tmp_path):
+    from ss_drl.agents import UPDATE_METRICS
+    from ss_drl.ops import linear_epsilon
+    from ss_drl.training.outputs import TRAIN_COLUMNS, TRAIN_FILE
+
+    cfg = compose_cfg(
+        "+experiment=easy_small_ss_her", "trainer.total_env_steps=1500", "trainer.log_interval=50", *SMALL
+    )
+    summary = Trainer(cfg, tmp_path).train()
+    lines = (tmp_path / TRAIN_FILE).read_text().splitlines()
+    assert tuple(lines[0].split(",")) == TRAIN_COLUMNS
+    rows = [dict(zip(TRAIN_COLUMNS, map(float, line.split(",")))) for line in lines[1:]]
+    updates = [int(r["updates"]) for r in rows]
+    # One update per env step of every batch that ends at or after learning_starts (100; a batch holds at most 16
+    # steps): a row every 50 updates, plus one for the end of the run's remainder.
+    total_updates = updates[-1]
+    assert 1500 - 100 <= total_updates <= 1500 - 100 + 16
+    assert updates[:-1] == list(range(50, total_updates, 50))
+    assert rows[-1]["env_steps"] == 1500
+    assert summary["env_steps"] == 1500
+    for r in rows:
+        assert 100 <= r["env_steps"] <= 1500
+        assert r["loss"] >= 0 and r["td_abs"] >= 0 and r["updates_per_s"] > 0
+        assert r["her_share"] == pytest.approx(round(32 * 4 / 5) / 32)  # k = 4: 26 of 32 items relabeled
+        assert 0 <= r["goal_share"] <= 1
+        assert r["epsilon"] == pytest.approx(linear_epsilon(int(r["env_steps"]) - 16, 1.0, 0.05, 5000), abs=0.01)
+    assert set(UPDATE_METRICS) <= set(TRAIN_COLUMNS)
+    # Without HER no goal is relabeled, and every batch's goal is G.
+    no_her = compose_cfg(
+        "+experiment=easy_small_ss_her", "her.k=0", "trainer.total_env_steps=600", "trainer.log_interval=50", *SMALL
+    )
+    Trainer(no_her, tmp_path / "no_her").train()
+    lines = (tmp_path / "no_her" / TRAIN_FILE).read_text().splitlines()[1:]
+    column = {name: i for i, name in enumerate(TRAIN_COLUMNS)}
+    assert lines and all(float(line.split(",")[column["her_share"]]) == 0 for line in lines)
+    assert all(float(line.split(",")[column["goal_share"]]) == 1 for line in lines)

@@ -15,6 +15,9 @@ from ss_drl.envs.maze import Maze
 from ss_drl.ops import epsilon_greedy
 from ss_drl.smart_start.selection import goal_q_values
 
+#: The discount that puts the undiscounted cost form's distances on the 0/1 scale (:meth:`DQNAgent.env_scale`).
+UNDISCOUNTED_SCALE = 0.99
+
 
 class CellEncoder(nn.Module):
     """Embeds flat cell indices: a learned table (``embedding``) or an MLP over normalized (row, col) (``coords``)."""
@@ -103,6 +106,10 @@ class GoalDQNLoss(LossModule):
     several times the passes themselves (``scripts/benchmark.py --section train``). No ``td_error`` is written
     (the HER buffer samples uniformly).
 
+    The sample's ``n_steps`` (m, from the HER buffer) sets the bootstrap discount gamma^m: m = 1 is TD(0).
+    ``value_range = (low, high)`` clips the targets to the values a policy can have (a bootstrapped value outside it
+    is the network's error, and with gamma near 1 such errors can feed on themselves until Q diverges).
+
     ``advantage_learning = alpha > 0`` adds the advantage-learning term to the target (``alpha = 0``: DQN).
     With 0/1 rewards and gamma < 1 the values of neighbouring actions differ by ~(1 - gamma) gamma^d, a few
     thousandths far from the goal, less than the network's error; the term multiplies those gaps by 1 / (1 - alpha).
@@ -121,6 +128,7 @@ class GoalDQNLoss(LossModule):
         double_dqn: bool = True,
         loss_function: str = "l2",
         advantage_learning: float = 0.0,
+        value_range: tuple[float, float] | None = None,
     ):
         super().__init__()
         self.convert_to_functional(q_network, "value_network", create_target_params=True)
@@ -128,6 +136,7 @@ class GoalDQNLoss(LossModule):
         self.double_dqn = bool(double_dqn)
         self.loss_function = loss_function
         self.advantage_learning = float(advantage_learning)
+        self.value_range = value_range
         with warnings.catch_warnings():
             # The updater (HardUpdate/SoftUpdate) is attached right after construction, by DQNAgent; reading the
             # target parameters before that makes TorchRL warn that nobody will update them.
@@ -147,13 +156,16 @@ class GoalDQNLoss(LossModule):
             else:
                 next_value = next_q.amax(-1, keepdim=True)
             not_terminal = (~tensordict.get(("next", "terminated"))).to(next_value.dtype)
-            target = tensordict.get(("next", "reward")) + self.gamma * not_terminal * next_value
+            discount = self.gamma ** tensordict.get("n_steps").to(next_value.dtype)  # gamma^m after m steps
+            target = tensordict.get(("next", "reward")) + discount * not_terminal * next_value
             if self.advantage_learning:
                 # Advantage learning (Bellemare et al., 2016): the taken action's target drops by alpha times its
                 # gap to the best action, which widens every action gap by 1 / (1 - alpha) at the fixed point and
                 # leaves the greedy action's value as it is.
                 q_now = target_network(obs, goal)
                 target = target - self.advantage_learning * (q_now.amax(-1, keepdim=True) - q_now.gather(-1, action))
+            if self.value_range is not None:
+                target = target.clamp(*self.value_range)
         loss = distance_loss(pred.squeeze(-1), target.squeeze(-1), self.loss_function).mean()
         detached = pred.detach()
         return TensorDict(loss=loss, q_mean=detached.mean(), td_abs=(detached - target).abs().mean())
@@ -166,7 +178,7 @@ class DQNAgent:
     ``LossModule`` (:class:`GoalDQNLoss`), the target network moved by ``HardUpdate``/``SoftUpdate``.
     """
 
-    def __init__(self, cfg, maze: Maze, replay_buffer, seed: int = 0):
+    def __init__(self, cfg, maze: Maze, replay_buffer, seed: int = 0, max_steps: int = 1000):
         self.cfg = cfg
         self.maze = maze
         self.replay_buffer = replay_buffer
@@ -180,6 +192,7 @@ class DQNAgent:
             double_dqn=cfg.double_dqn,
             loss_function=cfg.loss,
             advantage_learning=cfg.get("advantage_learning", 0.0),
+            value_range=self.value_range(max_steps) if cfg.get("clip_targets", False) else None,
         )
         if cfg.target_update == "hard":
             self.target_updater = HardUpdate(self.loss, value_network_update_interval=cfg.target_update_interval)
@@ -209,6 +222,13 @@ class DQNAgent:
         ``goals`` (B,), in one batched pass (:func:`~ss_drl.smart_start.selection.goal_q_values`)."""
         return self.env_scale(goal_q_values(self.q_network, states, goals))
 
+    def value_range(self, max_steps: int) -> tuple[float, float]:
+        """The values the learner's Q can take: between an episode that never reaches the goal (``max_steps``
+        steps of reward ``-step_cost``) and one that enters it on the first step (``1 - step_cost``)."""
+        c, gamma = self.step_cost, float(self.cfg.gamma)
+        never = -c * (max_steps if gamma == 1 else (1 - gamma**max_steps) / (1 - gamma))
+        return never, 1.0 - c
+
     def env_scale(self, q: torch.Tensor) -> torch.Tensor:
         """Map the learner's values (reward ``r - step_cost``) to the env's 0/1 reward scale.
 
@@ -220,6 +240,10 @@ class DQNAgent:
         c, gamma = self.step_cost, float(self.cfg.gamma)
         if c == 0:
             return q
+        if gamma == 1:
+            # Undiscounted cost form: Q = 1 - c d for a goal d steps away. With no discount of its own to map to,
+            # the distance is put on the 0/1 scale with the planner's default discount: 0.99^(d - 1).
+            return UNDISCOUNTED_SCALE ** ((1 - q) / c - 1)
         return ((1 - gamma) * q + c) / ((1 - gamma) + c * gamma)
 
     # --- learning ----------------------------------------------------------------------------------------------
@@ -242,8 +266,11 @@ class DQNAgent:
         """
         sample = self.replay_buffer.sample()
         if self.step_cost:
-            reward = sample.get(("next", "reward"))
-            sample.set(("next", "reward"), reward - self.step_cost)
+            # The learner's reward is r - step_cost on every step of the sample's m-step window.
+            steps = sample.get("n_steps").to(torch.float32)
+            gamma = self.loss.gamma
+            window = steps if gamma == 1 else (1 - gamma**steps) / (1 - gamma)  # sum_{j<m} gamma^j
+            sample.set(("next", "reward"), sample.get(("next", "reward")) - self.step_cost * window)
         out = self.loss(sample)
         loss = out.get("loss")
         self.optimizer.zero_grad(set_to_none=True)

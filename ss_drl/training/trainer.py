@@ -72,11 +72,11 @@ class UpdateLog:
     def add(self, metrics: torch.Tensor) -> None:
         self.rows.append(metrics)
 
-    def drain(self, updates: int) -> tuple[dict[str, float], float]:
-        """Mean of each metric over the held updates and their updates/s; then starts anew at ``updates``.
-
-        One host sync. A non-finite loss raises ``FloatingPointError`` naming the first update that had it.
-        """
+    def check_finite(self, updates: int) -> torch.Tensor | None:
+        """The held metrics as one (rows, metrics) tensor (one host sync; None if empty). A non-finite loss raises
+        ``FloatingPointError`` naming the first update that had it."""
+        if not self.rows:
+            return None
         values = torch.stack(self.rows).double()
         finite = torch.isfinite(values[:, 0])
         if not bool(finite.all()):
@@ -85,6 +85,11 @@ class UpdateLog:
             raise FloatingPointError(
                 f"non-finite DQN loss ({float(values[bad, 0])}) at update {self.first_update + int(bad * per_row)}"
             )
+        return values
+
+    def drain(self, updates: int) -> tuple[dict[str, float], float]:
+        """Mean of each metric over the held updates and their updates/s; then starts anew at ``updates``."""
+        values = self.check_finite(updates)
         means = dict(zip(UPDATE_METRICS, values.mean(dim=0).tolist()))
         now = time.perf_counter()
         rate = (updates - self.first_update) / max(now - self.start, 1e-9)
@@ -117,8 +122,10 @@ def make_agent(cfg: DictConfig, maze: Maze, seed: int) -> Agent:
         batch_size=cfg.agent.batch_size,
         strategy=cfg.her.strategy,
         k=cfg.her.k,
+        n_step=cfg.agent.n_step,
+        gamma=cfg.agent.gamma,
     )
-    return DQNAgent(cfg.agent, maze, buffer, seed=seed)
+    return DQNAgent(cfg.agent, maze, buffer, seed=seed, max_steps=cfg.env.max_steps)
 
 
 def make_smart_start(cfg: DictConfig, maze: Maze, counts: CountModel, seed: int) -> SmartStart | None:
@@ -164,6 +171,7 @@ class Trainer:
             resume_rows = self._restore()
         self.logger = RunLogger(self.run_dir, cfg, self.resolved, resume_rows=resume_rows)
         self._stop_signal = None
+        self.update_log: UpdateLog | None = None
 
     # --- the loop ----------------------------------------------------------------------------------------------
     def train(self) -> dict:
@@ -172,7 +180,7 @@ class Trainer:
         eps = cfg.agent
         start = time.perf_counter()
         self.start_time = start - self.wall_before
-        update_log = UpdateLog(agent.updates)
+        self.update_log = update_log = UpdateLog(agent.updates)
         bar = progress_bar(total, initial=collector.env_steps)
         handlers = self._install_signal_handlers()
         try:
@@ -365,6 +373,9 @@ class Trainer:
         }
 
     def save_checkpoint(self) -> Path:
+        """An atomic checkpoint; never of a network whose loss went non-finite since the last train.csv row."""
+        if self.update_log is not None:
+            self.update_log.check_finite(self.agent.updates)
         self.logger.flush()
         return ckpt.save(self.state_dict(), self.run_dir)
 
