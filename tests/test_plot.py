@@ -378,3 +378,40 @@ def test_cli_no_complete_runs(synth, tmp_path, capsys):
     assert err[1].startswith("plot.py: error: no complete runs")
     with pytest.raises(AnalysisError):
         load_runs([bad["missing_episodes"]], warn=lambda _: None)
+
+
+def test_learning_figure_draws_td_loss_and_mean_q_averaged_over_seeds(tmp_path):
+    from ss_drl.analysis.plots import learning_figure, write_plots
+    from ss_drl.training.outputs import TRAIN_COLUMNS, TRAIN_FILE
+
+    # Seed 0 logs loss 1 and Q 0.2 at env steps 100..1000; seed 1 loss 3 and Q 0.6 from 300 on. Over the steps both
+    # cover (300..1000) the mean is loss 2 and Q 0.4.
+    runs = []
+    for seed, (first, loss, q) in enumerate([(100, 1.0, 0.2), (300, 3.0, 0.6)]):
+        d = tmp_path / f"seed{seed}"
+        _write_run(d, "tiny", "ss_her", seed, 100, 1.0, _episodes([10], [1]), _evals([(0, 10, 1)]))
+        with (d / TRAIN_FILE).open("w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=TRAIN_COLUMNS)
+            w.writeheader()
+            for i, steps in enumerate(range(first, 1001, 100), start=1):
+                row = dict.fromkeys(TRAIN_COLUMNS, 0)
+                row.update(env_steps=steps, updates=100 * i, loss=loss, q_mean=q)
+                w.writerow(row)
+        runs.append(agg.load_run(d))
+    logs = [agg.load_train_log(r) for r in runs]
+    assert logs[1]["env_steps"].tolist() == list(range(300, 1001, 100))
+    steps, mean_loss = agg.mean_over_seeds(logs, "loss", points=8)
+    assert steps.tolist() == list(range(300, 1001, 100))
+    np.testing.assert_allclose(mean_loss, 2.0)
+    fig = learning_figure("tiny", {"ss_her": runs}, {"ss_her": (0.0, 0.0, 1.0, 1.0)})
+    (loss_mean,) = [line for line in fig.axes[0].lines if line.get_label() == "ss_her (n=2)"]
+    (q_mean,) = [line for line in fig.axes[1].lines if line.get_label() == "ss_her (n=2)"]
+    np.testing.assert_allclose(loss_mean.get_ydata(), 2.0)
+    np.testing.assert_allclose(q_mean.get_ydata(), 0.4)
+    assert (loss_mean.get_xdata().min(), loss_mean.get_xdata().max()) == (300, 1000)
+    written = write_plots({("tiny", "ss_her"): runs}, tmp_path / "plots", n_resamples=10)
+    assert (tmp_path / "plots" / "tiny_learning.png") in written
+    # A run without train.csv (written before it existed) draws no learning figure.
+    (runs[0].path / TRAIN_FILE).unlink()
+    (runs[1].path / TRAIN_FILE).unlink()
+    assert learning_figure("tiny", {"ss_her": runs}, {"ss_her": (0.0, 0.0, 1.0, 1.0)}) is None

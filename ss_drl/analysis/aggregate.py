@@ -30,6 +30,8 @@ from ss_drl.training.outputs import (
     FAILED_FILE,
     SUMMARY_FILE,
     SUMMARY_KEYS,
+    TRAIN_COLUMNS,
+    TRAIN_FILE,
 )
 
 #: Files that mark a directory as a run directory (complete or not).
@@ -530,3 +532,26 @@ def results_table(groups: dict[tuple[str, str], list[Run]], n_resamples: int = 1
 def markdown_table(rows: Sequence[TableRow]) -> str:
     """The results table in markdown (:data:`TABLE_HEADER`, one line per row; trailing newline)."""
     return format_markdown_table(TABLE_HEADER, [r.cells() for r in rows]) + "\n"
+
+
+def load_train_log(run: Run) -> dict[str, np.ndarray] | None:
+    """The run's train.csv as float arrays (:data:`~ss_drl.training.outputs.TRAIN_COLUMNS`), or None for a run
+    written before train.csv existed."""
+    path = run.path / TRAIN_FILE
+    if not path.is_file():
+        return None
+    return _read_csv(path, TRAIN_COLUMNS, TRAIN_COLUMNS)
+
+
+def mean_over_seeds(logs: Sequence[dict[str, np.ndarray]], column: str, points: int = 200) -> tuple[np.ndarray, ...]:
+    """(env steps, mean of ``column``): each seed's log interpolated linearly in env steps onto ``points`` steps
+    over the range that every seed covers, then averaged. Empty arrays when the seeds' ranges do not overlap."""
+    logs = [log for log in logs if len(log["env_steps"])]
+    if not logs:
+        return np.empty(0), np.empty(0)
+    low = max(float(log["env_steps"].min()) for log in logs)
+    high = min(float(log["env_steps"].max()) for log in logs)
+    if high < low:
+        return np.empty(0), np.empty(0)
+    grid = np.linspace(low, high, points)
+    return grid, np.mean([np.interp(grid, log["env_steps"], log[column]) for log in logs], axis=0)

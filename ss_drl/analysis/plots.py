@@ -27,7 +27,9 @@ from ss_drl.analysis.aggregate import (
     first_goal_env_step,
     group_runs,
     load_runs,
+    load_train_log,
     markdown_table,
+    mean_over_seeds,
     results_table,
 )
 
@@ -85,6 +87,31 @@ def curve_figure(
     return fig
 
 
+def learning_figure(maze: str, by_method: dict[str, list[Run]], colors: dict[str, tuple]) -> Figure | None:
+    """TD loss and mean Q of the sampled batches over env steps (train.csv): each seed thin, the mean over seeds
+    (:func:`~ss_drl.analysis.aggregate.mean_over_seeds`) bold. None when no run has a train.csv."""
+    logs = {method: [log for log in map(load_train_log, runs) if log is not None] for method, runs in by_method.items()}
+    if not any(logs.values()):
+        return None
+    fig = _new_figure(figsize=(7.0, 6.0))
+    axes = fig.subplots(2, 1, sharex=True)
+    for ax, column, label in ((axes[0], "loss", "TD loss"), (axes[1], "q_mean", "mean Q of the batch")):
+        for method, method_logs in logs.items():
+            for log in method_logs:
+                ax.plot(log["env_steps"], log[column], color=colors[method], lw=0.5, alpha=0.3)
+            steps, mean = mean_over_seeds(method_logs, column)
+            if steps.size:
+                ax.plot(steps, mean, color=colors[method], lw=1.5, label=f"{method} (n={len(method_logs)})")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].set_yscale("log")
+    axes[0].set_title(f"Learning: {maze}\neach seed thin, mean over seeds bold (train.csv)", fontsize=10)
+    axes[1].set_xlabel("env steps")
+    if axes[0].lines:
+        axes[0].legend(fontsize=8)
+    return fig
+
+
 def first_goal_figure(maze: str, by_method: dict[str, list[Run]], colors: dict[str, tuple], seed: int = 0) -> Figure:
     """Env steps to the first goal per method: a box over the seeds that reached G with every such seed as a point;
     seeds that never reached G are drawn as crosses in a separate "never" row above the boxes and counted in the
@@ -126,8 +153,9 @@ def write_plots(
     n_resamples: int = 1000,
     seed: int = 0,
 ) -> list[Path]:
-    """Write three PNGs per maze into ``out_dir`` and return their paths:
-    ``<maze>_fig5_return.png``, ``<maze>_fig6_length.png`` and ``<maze>_first_goal.png``."""
+    """Write the PNGs of each maze into ``out_dir`` and return their paths: ``<maze>_fig5_return.png``,
+    ``<maze>_fig6_length.png``, ``<maze>_first_goal.png`` and, for runs with a train.csv, ``<maze>_learning.png``
+    (TD loss and mean Q over env steps)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     colors = _colors(sorted({method for _, method in groups}))
@@ -150,8 +178,11 @@ def write_plots(
                 smooth, n_resamples, seed,
             ),
             f"{stem}_first_goal.png": first_goal_figure(maze, by_method, colors, seed),
+            f"{stem}_learning.png": learning_figure(maze, by_method, colors),
         }  # fmt: skip
         for name, fig in figures.items():
+            if fig is None:
+                continue
             fig.savefig(out / name, dpi=120)
             written.append(out / name)
     return written
