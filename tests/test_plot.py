@@ -26,6 +26,7 @@ from ss_drl.analysis import (
 )
 from ss_drl.analysis.aggregate import AnalysisError, IncompleteRun
 from ss_drl.analysis.tables import format_markdown_table
+from ss_drl.training.learned import Learned
 from ss_drl.training.outputs import (
     EPISODE_COLUMNS,
     EPISODES_FILE,
@@ -52,17 +53,25 @@ def _episodes(lengths, returns):
 
 
 def _evals(triples):
+    """eval.csv rows from (env_steps, eval_length, eval_success); wall seconds = env steps / 100."""
     rows = []
     for k, (env_steps, length, success) in enumerate(triples, start=1):
         row = dict.fromkeys(EVAL_COLUMNS, 0)
         row.update({agg.EV_ENV_STEPS: env_steps, agg.EV_EPISODE: k, agg.EV_LENGTH: length, agg.EV_SUCCESS: success})
+        row[agg.EV_WALL] = env_steps / 100
         rows.append(row)
     return rows
 
 
+#: eval.csv's columns before it had wall_s (runs written then must still load).
+OLD_EVAL_COLUMNS = tuple(c for c in EVAL_COLUMNS if c != agg.EV_WALL)
+
+
 def _write_run(
-    d: Path, maze, method, seed, first_goal, wall, episodes, evals, completed=True, n_episodes=None, accuracy=None
-):
+    d: Path, maze, method, seed, first_goal, wall, episodes, evals, completed=True, n_episodes=None, accuracy=None,
+    eval_columns=EVAL_COLUMNS,
+):  # fmt: skip
+    """A run directory; the summary's env steps (the budget) are those of the last evaluation (0 without any)."""
     d.mkdir(parents=True)
     summary = dict.fromkeys(SUMMARY_KEYS)
     summary.update(
@@ -76,18 +85,23 @@ def _write_run(
             agg.SK_OPTIMAL: OPTIMAL,
             agg.SK_WALL: wall,
             agg.SK_ACCURACY: accuracy,
+            agg.SK_ENV_STEPS: evals[-1][agg.EV_ENV_STEPS] if evals else 0,
         }
     )
     (d / SUMMARY_FILE).write_text(json.dumps(summary))
-    for name, columns, rows in ((EPISODES_FILE, EPISODE_COLUMNS, episodes), (EVAL_FILE, EVAL_COLUMNS, evals)):
+    for name, columns, rows in ((EPISODES_FILE, EPISODE_COLUMNS, episodes), (EVAL_FILE, eval_columns, evals)):
         with (d / name).open("w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=columns)
+            w = csv.DictWriter(f, fieldnames=columns, extrasaction="ignore")
             w.writeheader()
             w.writerows(rows)
 
 
 def _build(root: Path) -> dict[str, Path]:
-    """2 methods x 3 seeds on MAZE, 1 run on OTHER_MAZE, and 4 incomplete runs; returns the incomplete dirs."""
+    """2 methods x 3 seeds on MAZE, 1 run on OTHER_MAZE, and 5 incomplete runs; returns the incomplete dirs.
+
+    Learned (>= 90% of the evaluations after 3/4 of the budget, the last evaluation's env steps, within 21 steps):
+    ss_her seeds 0 (at 2000, 20.0 s) and 1 (at 1000; its eval.csv is from before wall_s); not seed 2 (1 of 2).
+    """
     a = root / "multirun" / "2026-11-22" / "10-00-00"
     b = root / "multirun" / "2026-11-22" / "11-30-00"
     ep = np.arange(1, 151)
@@ -98,10 +112,10 @@ def _build(root: Path) -> dict[str, Path]:
                accuracy=0.5)  # fmt: skip
     _write_run(a / "1", MAZE, "ss_her", 1, 2000, 20.0,
                _episodes(np.where(ep <= 100, 30, 12), (ep > 75).astype(int)),
-               _evals([(500, 100, 0), (1000, 20, 1)]), accuracy=1.0)  # fmt: skip
+               _evals([(500, 100, 0), (1000, 20, 1)]), accuracy=1.0, eval_columns=OLD_EVAL_COLUMNS)  # fmt: skip
     _write_run(a / "2", MAZE, "ss_her", 2, 6000, 60.0,
                _episodes(np.where(ep[:120] <= 100, 40, 14), np.ones(120, int)),
-               _evals([(1000, 22, 1), (3000, 20, 1)]))  # fmt: skip
+               _evals([(1000, 22, 1), (3000, 20, 1), (3500, 100, 0)]))  # fmt: skip
     # dqn: 100 episodes of length 100; only seed 0 reaches G (in episode 100); no greedy eval within 5%.
     _write_run(b / "0", MAZE, "dqn", 0, 9000, 5.0, _episodes([100] * 100, [0] * 99 + [1]),
                _evals([(5000, 100, 0), (10000, 30, 1)]))  # fmt: skip
@@ -114,6 +128,7 @@ def _build(root: Path) -> dict[str, Path]:
         "missing_episodes": b / "4",
         "truncated_line": b / "5",
         "fewer_rows": b / "nested" / "deeper" / "6",
+        "eval_goes_back": b / "7",
     }
     _write_run(bad["not_completed"], MAZE, "ss_her", 3, 1, 1.0, _episodes([1], [1]), _evals([]), completed=False)
     _write_run(bad["missing_episodes"], MAZE, "dqn", 4, None, 1.0, _episodes([1], [0]), _evals([]))
@@ -122,6 +137,8 @@ def _build(root: Path) -> dict[str, Path]:
     with (bad["truncated_line"] / EPISODES_FILE).open("a") as f:
         f.write("3,0,")  # a row cut short by a killed writer
     _write_run(bad["fewer_rows"], MAZE, "dqn", 6, None, 1.0, _episodes([1, 2], [0, 0]), _evals([]), n_episodes=5)
+    _write_run(bad["eval_goes_back"], MAZE, "dqn", 7, None, 1.0, _episodes([1], [0]),
+               _evals([(100, 5, 0), (300, 5, 0), (200, 5, 0)]))  # fmt: skip
     return bad
 
 
@@ -238,6 +255,7 @@ def test_incomplete_runs_are_skipped_with_one_warning_each(synth, loaded):
         "missing_episodes": f"missing {EPISODES_FILE}",
         "truncated_line": "line 4 has 3 fields",
         "fewer_rows": "has 2 episodes but summary.json says episodes=5",
+        "eval_goes_back": f"{EVAL_FILE} line 4: env_steps 200 is below the one before",
     }
     for key, d in bad.items():
         (line,) = [w for w in warnings if str(d.resolve()) + ":" in w]
@@ -266,9 +284,14 @@ def test_results_table_values(loaded):
     assert (ss.near_optimal_median, ss.near_optimal_reached) == (2000.0, 3)  # first hits: 2000, 1000, 3000
     assert ss.wall_median == 20.0
     assert ss.greedy_accuracy == 0.75  # seeds 0 and 1 (0.5, 1.0); seed 2's summary has none
+    # Learned: seeds 0 (at 2000) and 1 (at 1000, no wall seconds in its old eval.csv); seed 2 has 1 of 2 within bound.
+    assert (ss.learned_reached, ss.learned_known, ss.learned_median) == (2, 3, 1500.0)
+    assert ss.learned_wall_median == 20.0
+    assert ss.last_quarter_mean == pytest.approx(2.5 / 3)
     assert ss.cells() == [
         MAZE, "ss_her", "3", "3,000.0", "[1,000.0, 6,000.0]", "2,000.0", "3/3 seeds",
-        "0.583", "1.000", "30.0", "12.0", "2,000.0", "3/3 seeds", "0.750", "20.0",
+        "0.583", "1.000", "30.0", "12.0", "2,000.0", "3/3 seeds",
+        "2/3 seeds", "1,500.0", "20.0", "0.833", "0.750", "20.0",
     ]  # fmt: skip
 
     dqn = rows[(MAZE, "dqn")]
@@ -278,13 +301,34 @@ def test_results_table_values(loaded):
     assert (dqn.near_optimal_median, dqn.near_optimal_reached) == (None, 0)
     assert dqn.cells() == [
         MAZE, "dqn", "3", "9,000.0", "–", "9,000.0", "1/3 seeds",
-        "0.003", "–", "100.0", "–", "never", "0/3 seeds", "–", "6.0",
+        "0.003", "–", "100.0", "–", "never", "0/3 seeds",
+        "0/3 seeds", "never", "–", "0.000", "–", "6.0",
     ]  # fmt: skip
 
     other = rows[(OTHER_MAZE, "dqn")]
     assert other.cells()[3:7] == ["never", "–", "never", "0/1 seeds"]
-    assert other.cells()[11:13] == ["never", "0/1 seeds"]
+    assert other.cells()[11:17] == ["never", "0/1 seeds", "0/1 seeds", "never", "–", "0.000"]
     assert (other.first_goal_mean, other.first_goal_low, other.first_goal_high) == (None, None, None)
+
+
+def test_learned_rule_on_loaded_runs(loaded, tmp_path):
+    runs = {(r.method, r.seed): r for r in loaded[0] if r.maze == MAZE}
+    assert agg.run_learned(runs[("ss_her", 0)]) == Learned(2000.0, 20.0, 1.0)
+    # An eval.csv from before the wall_s column loads, with no wall seconds.
+    old = runs[("ss_her", 1)]
+    assert np.isnan(old.evals[agg.EV_WALL]).all() and len(old.evals[agg.EV_WALL]) == 2
+    assert agg.run_learned(old) == Learned(1000.0, None, 1.0)
+    assert agg.run_learned(runs[("ss_her", 2)]) == Learned(None, None, 0.5)
+    # Without the budget (summary env_steps) the rule cannot be applied, and the table counts the seed as unknown.
+    _write_run(tmp_path / "r", MAZE, "ss_her", 0, 1000, 1.0, _episodes([1], [1]), _evals([(100, 20, 1)]))
+    summary = json.loads((tmp_path / "r" / SUMMARY_FILE).read_text())
+    summary[agg.SK_ENV_STEPS] = None
+    (tmp_path / "r" / SUMMARY_FILE).write_text(json.dumps(summary))
+    unknown = load_run(tmp_path / "r")
+    assert agg.run_learned(unknown) is None
+    row = agg.table_row(MAZE, "ss_her", [unknown, runs[("ss_her", 0)]], n_resamples=10)
+    assert row.cells()[13:17] == ["1/1 seeds", "2,000.0", "20.0", "1.000"]
+    assert agg.table_row(MAZE, "ss_her", [unknown], n_resamples=10).cells()[13:17] == ["0/0 seeds", "–", "–", "–"]
 
 
 def test_markdown_table_shape(loaded):

@@ -115,7 +115,8 @@ def test_sigterm_then_resume_equals_uninterrupted_run(tmp_path):
         assert data.count(b"\r\n") == data.count(b"\n"), f"{file}: mixed line endings after resume"
     a = json.loads((full / SUMMARY_FILE).read_text())
     b = json.loads((cut / SUMMARY_FILE).read_text())
-    for key in ("episodes", "env_steps", "first_goal_env_step", "final_eval_length", "completed"):
+    keys = ("episodes", "env_steps", "first_goal_env_step", "final_eval_length", "completed")
+    for key in (*keys, "learned_env_step", "last_quarter_within"):
         assert a[key] == b[key]
 
 

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ss_drl.analysis.tables import format_markdown_table
+from ss_drl.training.learned import BOUND, LAST_QUARTER, SHARE, EvalRecord, Learned, learned
 from ss_drl.training.outputs import (
     CHECKPOINT_FILE,
     EPISODE_COLUMNS,
@@ -60,6 +61,7 @@ EV_ENV_STEPS = _field(EVAL_COLUMNS, "env_steps")
 EV_EPISODE = _field(EVAL_COLUMNS, "episode")
 EV_LENGTH = _field(EVAL_COLUMNS, "eval_length")
 EV_SUCCESS = _field(EVAL_COLUMNS, "eval_success")
+EV_WALL = _field(EVAL_COLUMNS, "wall_s")  # optional: eval.csv files from before it exist (NaN then)
 # summary.json keys read here
 SK_METHOD = _field(SUMMARY_KEYS, "method")
 SK_MAZE = _field(SUMMARY_KEYS, "maze")
@@ -68,17 +70,21 @@ SK_COMPLETED = _field(SUMMARY_KEYS, "completed")
 SK_FIRST_GOAL = _field(SUMMARY_KEYS, "first_goal_env_step")
 SK_EPISODES = _field(SUMMARY_KEYS, "episodes")
 SK_OPTIMAL = _field(SUMMARY_KEYS, "optimal_length")
+SK_ENV_STEPS = _field(SUMMARY_KEYS, "env_steps")
 SK_WALL = _field(SUMMARY_KEYS, "wall_s")
 SK_ACCURACY = _field(SUMMARY_KEYS, "final_greedy_accuracy")
 
 #: Numeric columns parsed from each CSV (the others, e.g. the ``ss_target`` string, are only checked for presence).
 EPISODE_NUMERIC = (EP_EPISODE, EP_ENV_STEPS, EP_LENGTH, EP_RETURN, EP_SUCCESS)
-EVAL_NUMERIC = (EV_ENV_STEPS, EV_EPISODE, EV_LENGTH, EV_SUCCESS)
+EVAL_NUMERIC = (EV_ENV_STEPS, EV_EPISODE, EV_LENGTH, EV_SUCCESS, EV_WALL)
+#: Columns a run's eval.csv may lack (older runs): read as NaN.
+EVAL_OPTIONAL = (EV_WALL,)
 
 #: Episodes ``1..EARLY_EPISODES`` are the "early" block of the table, the rest the "late" one.
 EARLY_EPISODES = 100
-#: A greedy evaluation is "near optimal" when it succeeds with ``eval_length <= NEAR_OPTIMAL * optimal_length``.
-NEAR_OPTIMAL = 1.05
+#: A greedy evaluation is "near optimal" when it succeeds with ``eval_length <= NEAR_OPTIMAL * optimal_length`` (the
+#: bound of the learned rule, :mod:`ss_drl.training.learned`).
+NEAR_OPTIMAL = float(BOUND)
 
 
 class AnalysisError(Exception):
@@ -94,7 +100,8 @@ class Run:
     """One loaded run directory.
 
     ``episodes`` and ``evals`` map the numeric columns (:data:`EPISODE_NUMERIC`, :data:`EVAL_NUMERIC`) to float arrays,
-    one entry per CSV row in file order; ``episodes[EP_EPISODE]`` is always ``1..N``.
+    one entry per CSV row in file order; ``episodes[EP_EPISODE]`` is always ``1..N``. A column of
+    :data:`EVAL_OPTIONAL` that the file lacks is all NaN.
     """
 
     path: Path
@@ -146,9 +153,12 @@ def _one_line(text: object) -> str:
     return " ".join(str(text).split())
 
 
-def _read_csv(path: Path, columns: tuple[str, ...], numeric: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """Read a run CSV strictly: the header must hold ``columns``, every row must have the header's field count and
-    every ``numeric`` cell must parse as a finite number. Raises :class:`IncompleteRun` otherwise."""
+def _read_csv(
+    path: Path, columns: tuple[str, ...], numeric: tuple[str, ...], optional: tuple[str, ...] = ()
+) -> dict[str, np.ndarray]:
+    """Read a run CSV strictly: the header must hold ``columns`` (except those in ``optional``), every row must have
+    the header's field count and every ``numeric`` cell must parse as a finite number. Raises :class:`IncompleteRun`
+    otherwise. A ``numeric`` column of ``optional`` that the header lacks is returned all NaN."""
     name = path.name
     if not path.is_file():
         raise IncompleteRun(f"missing {name}")
@@ -160,16 +170,18 @@ def _read_csv(path: Path, columns: tuple[str, ...], numeric: tuple[str, ...]) ->
     if not rows:
         raise IncompleteRun(f"{name} is empty (no header)")
     header = rows[0]
-    missing = [c for c in columns if c not in header]
+    missing = [c for c in columns if c not in header and c not in optional]
     if missing:
         raise IncompleteRun(f"{name} lacks columns {', '.join(missing)}")
-    where = [header.index(c) for c in numeric]
-    values = np.empty((len(rows) - 1, len(numeric)), dtype=float)
+    where = [header.index(c) if c in header else None for c in numeric]
+    values = np.full((len(rows) - 1, len(numeric)), math.nan)
     for i, row in enumerate(rows[1:]):
         line = i + 2
         if len(row) != len(header):
             raise IncompleteRun(f"{name} line {line} has {len(row)} fields, expected {len(header)} (partial file?)")
         for j, k in enumerate(where):
+            if k is None:
+                continue
             try:
                 v = float(row[k])
             except ValueError:
@@ -184,8 +196,8 @@ def load_run(path: str | os.PathLike) -> Run:
     """Load one run directory; raises :class:`IncompleteRun` (with a one-line reason) when it cannot be used.
 
     A run is incomplete when a file is missing or unreadable, a CSV row is cut short, ``summary.json`` lacks the
-    keys used here or says ``completed: false``, the episode column is not ``1..N``, or ``episodes.csv`` has fewer or
-    more rows than the summary's episode count (a partially written file).
+    keys used here or says ``completed: false``, the episode column is not ``1..N``, ``episodes.csv`` has fewer or
+    more rows than the summary's episode count (a partially written file), or eval.csv's env steps go back.
     """
     path = Path(path)
     failed = path / FAILED_FILE
@@ -207,7 +219,12 @@ def load_run(path: str | os.PathLike) -> Run:
     if summary[SK_COMPLETED] is not True:
         raise IncompleteRun(f"{SUMMARY_FILE} says {SK_COMPLETED}={json.dumps(summary[SK_COMPLETED])}")
     episodes = _read_csv(path / EPISODES_FILE, EPISODE_COLUMNS, EPISODE_NUMERIC)
-    evals = _read_csv(path / EVAL_FILE, EVAL_COLUMNS, EVAL_NUMERIC)
+    evals = _read_csv(path / EVAL_FILE, EVAL_COLUMNS, EVAL_NUMERIC, EVAL_OPTIONAL)
+    steps = evals[EV_ENV_STEPS]
+    back = np.flatnonzero(np.diff(steps) < 0)
+    if back.size:
+        i = int(back[0]) + 1  # the data row whose env steps are below the previous row's
+        raise IncompleteRun(f"{EVAL_FILE} line {i + 2}: {EV_ENV_STEPS} {steps[i]:g} is below the one before")
     n = len(episodes[EP_EPISODE])
     if not np.array_equal(episodes[EP_EPISODE], np.arange(1, n + 1)):
         raise IncompleteRun(f"{EPISODES_FILE} column {EP_EPISODE} is not 1..{n}")
@@ -385,6 +402,23 @@ def near_optimal_env_step(run: Run, tolerance: float = NEAR_OPTIMAL) -> float | 
     return float(run.evals[EV_ENV_STEPS][hits[0]]) if hits.size else None
 
 
+def run_learned(run: Run) -> Learned | None:
+    """The learned rule (:func:`ss_drl.training.learned.learned`) on the run's eval.csv rows, with the summary's
+    ``optimal_length`` and ``env_steps`` (a completed run's env steps are its budget, ``trainer.total_env_steps``).
+
+    None when the summary lacks either number. ``wall_s`` is None for an eval.csv without the ``wall_s`` column.
+    """
+    optimal, total = run.summary.get(SK_OPTIMAL), run.summary.get(SK_ENV_STEPS)
+    if not (_is_number(optimal) and optimal > 0 and _is_number(total) and total > 0):
+        return None
+    ev = run.evals
+    records = [
+        EvalRecord(float(s), float(n), bool(ok), float(w))
+        for s, n, ok, w in zip(ev[EV_ENV_STEPS], ev[EV_LENGTH], ev[EV_SUCCESS] == 1, ev[EV_WALL])
+    ]
+    return learned(records, optimal, total)
+
+
 def _episode_block_mean(runs: Sequence[Run], column: str, first: int, last: float) -> float | None:
     """Mean over seeds of each seed's mean of ``column`` over episodes ``first..last``; seeds without such episodes
     are left out; None when no seed has any."""
@@ -410,6 +444,12 @@ class TableRow:
       steps until the greedy evaluation succeeded within 5% of the shortest path; None ("never") when none did.
     * ``greedy_accuracy``: mean over the seeds whose summary has it of the final greedy accuracy (the fraction of
       states whose greedy action is on a shortest path to G); None when none has it (runs from before it existed).
+    * ``learned_*``: the learned rule (:func:`run_learned`): ``learned_reached`` of ``learned_known`` seeds learned
+      (``learned_known``: the seeds whose summary has ``optimal_length`` and ``env_steps``, normally all);
+      ``learned_median`` / ``learned_wall_median``: median over the seeds that learned of the env steps / wall seconds
+      at the learned step (the wall median over those whose eval.csv has ``wall_s``); None when there are none.
+    * ``last_quarter_mean``: mean over seeds of the fraction of last-quarter evaluations within 1.05x (None when no
+      seed has last-quarter evaluations).
     * ``wall_median``: median wall time per run in seconds (None when no summary has it).
     """
 
@@ -427,6 +467,11 @@ class TableRow:
     length_late: float | None
     near_optimal_median: float | None
     near_optimal_reached: int
+    learned_reached: int
+    learned_known: int
+    learned_median: float | None
+    learned_wall_median: float | None
+    last_quarter_mean: float | None
     greedy_accuracy: float | None
     wall_median: float | None
 
@@ -455,6 +500,10 @@ class TableRow:
             _fmt(self.length_late, ",.1f"),
             "never" if self.near_optimal_median is None else f"{self.near_optimal_median:,.1f}",
             f"{self.near_optimal_reached}/{self.seeds} seeds",
+            f"{self.learned_reached}/{self.learned_known} seeds",
+            ("never" if self.learned_known else "–") if self.learned_median is None else f"{self.learned_median:,.1f}",
+            _fmt(self.learned_wall_median, ",.1f"),
+            _fmt(self.last_quarter_mean, ".3f"),
             _fmt(self.greedy_accuracy, ".3f"),
             _fmt(self.wall_median, ",.1f"),
         ]
@@ -478,6 +527,10 @@ TABLE_HEADER = (
     f"length (ep {EARLY_EPISODES + 1}+)",
     f"env steps to ≤{NEAR_OPTIMAL:g}× optimal (median)",
     f"≤{NEAR_OPTIMAL:g}× optimal",
+    f"learned (≥{float(SHARE):.0%} of evals after {float(LAST_QUARTER):.0%} of budget ≤{NEAR_OPTIMAL:g}×)",
+    "learned: env steps (median)",
+    "learned: wall s (median)",
+    f"evals after {float(LAST_QUARTER):.0%} of budget ≤{NEAR_OPTIMAL:g}× (mean fraction)",
     "final greedy accuracy (mean)",
     "wall s/run (median)",
 )
@@ -500,6 +553,10 @@ def table_row(maze: str, method: str, runs: Sequence[Run], n_resamples: int = 10
     near = [s for s in (near_optimal_env_step(r) for r in runs) if s is not None]
     walls = [float(r.summary[SK_WALL]) for r in runs if _is_number(r.summary.get(SK_WALL))]
     accuracy = [float(r.summary[SK_ACCURACY]) for r in runs if _is_number(r.summary.get(SK_ACCURACY))]
+    rules = [rule for rule in (run_learned(r) for r in runs) if rule is not None]
+    learned_steps = [rule.env_step for rule in rules if rule.env_step is not None]
+    learned_walls = [rule.wall_s for rule in rules if rule.env_step is not None and rule.wall_s is not None]
+    quarters = [rule.last_quarter_within for rule in rules if rule.last_quarter_within is not None]
     return TableRow(
         maze=maze,
         method=method,
@@ -515,6 +572,11 @@ def table_row(maze: str, method: str, runs: Sequence[Run], n_resamples: int = 10
         length_late=_episode_block_mean(runs, EP_LENGTH, EARLY_EPISODES + 1, math.inf),
         near_optimal_median=float(np.median(near)) if near else None,
         near_optimal_reached=len(near),
+        learned_reached=len(learned_steps),
+        learned_known=len(rules),
+        learned_median=float(np.median(learned_steps)) if learned_steps else None,
+        learned_wall_median=float(np.median(learned_walls)) if learned_walls else None,
+        last_quarter_mean=float(np.mean(quarters)) if quarters else None,
         greedy_accuracy=float(np.mean(accuracy)) if accuracy else None,
         wall_median=float(np.median(walls)) if walls else None,
     )

@@ -222,7 +222,9 @@ def make_report(
         + "\nFirst goal: env steps until G was first reached, over the seeds that reached it. "
         "Return/length: per-seed mean over the episode range, then the mean over seeds. "
         "≤1.05× optimal: env steps until the greedy evaluation reached G within 5% of the shortest path "
-        "(median over the seeds that got there).\n"
+        "(median over the seeds that got there). Learned: at least 90% of the greedy evaluations after 75% of the "
+        "budget reached G within 5% of the shortest path; its env steps and wall s are those of the first evaluation "
+        "of the streak that stays learned (from it on, at least 90% within 5%), median over the seeds that learned.\n"
     )
     written.append(results)
     return table, written

@@ -45,6 +45,7 @@ EVAL_COLUMNS = (
     "episode",  # finished training episodes at evaluation time
     "eval_length",  # steps of the greedy episode from S (max_steps when it fails)
     "eval_success",  # 1 if the greedy episode reached G
+    "wall_s",  # seconds since the run started (eval.csv files from before this column load without it)
 )
 
 TRAIN_COLUMNS = (
@@ -73,6 +74,11 @@ SUMMARY_KEYS = (
     "final_eval_length",  # length of the last greedy evaluation
     "final_greedy_accuracy",  # at the last evaluation: fraction of states whose greedy action is on a shortest path
     "optimal_length",  # BFS shortest path S -> G
+    # The "learned" rule (ss_drl.training.learned): an evaluation is within bound when it succeeds within
+    # 1.05 x optimal_length; the run is learned when >= 90% of its last-quarter evaluations are.
+    "learned_env_step",  # env steps at the first evaluation of the streak that stays within bound (null if not learned)
+    "learned_wall_s",  # the run's wall seconds at that evaluation (null if not learned)
+    "last_quarter_within",  # fraction of evaluations after 75% of the budget within bound (null if there are none)
     "wall_s",  # run time in seconds
     "env_steps_per_s",
     "updates_per_s",
@@ -87,6 +93,14 @@ def _csv_rows(path: Path) -> int:
         return 0
     with path.open() as f:
         return max(sum(1 for _ in f) - 1, 0)
+
+
+def _header(path: Path) -> list[str] | None:
+    """The header row of a CSV file (None if the file is missing or empty)."""
+    if not path.exists():
+        return None
+    with path.open(newline="") as f:
+        return next(csv.reader(f), None)
 
 
 def truncate_csv(path: Path, keep_rows: int) -> None:
@@ -130,6 +144,14 @@ class RunLogger:
         else:
             for path, rows in zip(paths, resume_rows):
                 truncate_csv(path, rows)
+        for path, columns in zip(paths, (EPISODE_COLUMNS, EVAL_COLUMNS, TRAIN_COLUMNS)):
+            header = _header(path)
+            if header is not None and tuple(header) != columns:
+                # Rows of another width appended under the old header would leave a file no one can parse.
+                raise ValueError(
+                    f"trainer.resume: {path.name} has columns {','.join(header)} but this version writes "
+                    f"{','.join(columns)}; start the run anew"
+                )
         self._episodes = self._open(self.episodes_path, EPISODE_COLUMNS)
         self._eval = self._open(self.eval_path, EVAL_COLUMNS)
         self._train = self._open(self.train_path, TRAIN_COLUMNS)
@@ -145,7 +167,7 @@ class RunLogger:
 
     @staticmethod
     def _open(path: Path, columns: tuple[str, ...]):
-        new = not path.exists()
+        new = _header(path) is None
         handle = path.open("a", newline="")
         writer = csv.writer(handle)
         if new:

@@ -36,6 +36,7 @@ from ss_drl.training.collector import Episode, MazeCollector
 from ss_drl.training.config import validate_config
 from ss_drl.training.figures import plot_visit_counts
 from ss_drl.training.greedy import greedy_rollout
+from ss_drl.training.learned import EvalRecord, learned
 from ss_drl.training.outputs import SUMMARY_FILE, RunLogger, progress_bar, write_json_atomic
 
 
@@ -158,6 +159,7 @@ class Trainer:
         self.episodes = 0
         self.first_goal = FirstGoal()
         self.last_eval: Evaluation | None = None
+        self.evals: list[EvalRecord] = []  # every evaluation of the run (kept in checkpoints), for the learned rule
         self.next_eval = 0
         self.next_checkpoint = cfg.trainer.checkpoint_interval
         self.log_interval = int(cfg.trainer.log_interval)
@@ -300,12 +302,14 @@ class Trainer:
     def evaluate(self) -> Evaluation:
         rollout = greedy_rollout(self.agent, self.maze, self.cfg.env.max_steps)
         steps = self.collector.env_steps
+        wall = round(time.perf_counter() - self.start_time, 3)
         self.logger.log_eval(
             {
                 "env_steps": steps,
                 "episode": self.episodes,
                 "eval_length": rollout.length,
                 "eval_success": int(rollout.success),
+                "wall_s": wall,
             }
         )
         self.logger.log_metrics(
@@ -318,12 +322,14 @@ class Trainer:
             step=steps,
         )
         self.last_eval = Evaluation(steps, rollout.length, rollout.success, rollout.accuracy)
+        self.evals.append(EvalRecord(steps, rollout.length, bool(rollout.success), wall))
         while self.next_eval <= steps:
             self.next_eval += self.cfg.trainer.eval_interval
         return self.last_eval
 
     def summary(self, completed: bool, wall: float) -> dict:
         last = self.last_eval
+        rule = learned(self.evals, self.optimal_length, int(self.cfg.trainer.total_env_steps))
         return {
             "experiment": self.cfg.experiment,
             "method": self.cfg.method,
@@ -337,6 +343,9 @@ class Trainer:
             "final_eval_length": None if last is None else last.length,
             "final_greedy_accuracy": None if last is None else round(last.accuracy, 4),
             "optimal_length": self.optimal_length,
+            "learned_env_step": rule.env_step,
+            "learned_wall_s": rule.wall_s,
+            "last_quarter_within": rule.last_quarter_within,
             "wall_s": round(wall, 3),
             "env_steps_per_s": round(self.collector.env_steps / max(wall, 1e-9), 1),
             "updates_per_s": round(self.agent.updates / max(wall, 1e-9), 1),
@@ -361,6 +370,7 @@ class Trainer:
             "episodes": self.episodes,
             "first_goal": dataclasses.asdict(self.first_goal),
             "last_eval": None if self.last_eval is None else dataclasses.asdict(self.last_eval),
+            "evals": [tuple(e) for e in self.evals],
             "next_eval": self.next_eval,
             "next_checkpoint": self.next_checkpoint,
             "next_log": self.next_log,
@@ -390,6 +400,9 @@ class Trainer:
         self.episodes = state["episodes"]
         self.first_goal = FirstGoal(**state["first_goal"])
         self.last_eval = None if state["last_eval"] is None else Evaluation(**state["last_eval"])
+        if "evals" not in state:
+            raise ValueError("trainer.resume: the checkpoint predates the list of evaluations; start the run anew")
+        self.evals = [EvalRecord(*e) for e in state["evals"]]
         self.next_eval, self.next_checkpoint = state["next_eval"], state["next_checkpoint"]
         self.next_log = state["next_log"]
         self.ss_targets = list(state["ss_targets"])
