@@ -56,10 +56,7 @@ def assert_config_error(cfg, key: str, value) -> str:
 
 # --- (a) every experiment composes and validates ---
 def test_experiments_found():
-    assert len(EXPERIMENTS) >= 30
-    for maze in ("easy", "medium", "hard", "extreme"):
-        for method in ("dqn", "dqn_her", "ss", "ss_her", "tabular", "tabular_ss"):
-            assert f"{maze}_{method}" in EXPERIMENTS
+    assert EXPERIMENTS == sorted(f"{maze}_{method}" for maze in MAZES for method in METHODS)
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
@@ -87,19 +84,41 @@ def test_experiment_composes_and_validates(name):
     assert cfg.agent.name == ("tabular" if method.startswith("tabular") else "dqn")
 
 
-DEEP_METHODS = ("dqn", "dqn_her", "ss", "ss_her")
+METHODS = ("dqn", "dqn_her", "ss", "ss_her", "tabular", "tabular_ss")
+MAZES = ("easy", "easy_small", "medium_small", "medium", "hard_small", "hard", "extreme")
 
 
-@pytest.mark.parametrize("maze", sorted({name.rsplit("_" + method_of(name), 1)[0] for name in EXPERIMENTS}))
-def test_deep_methods_on_a_maze_share_the_learner(maze):
-    """Comparing DQN, DQN+HER, SS and SS+HER on a maze compares exploration and relabeling, not learners: their
-    experiments set the same agent config (a per-maze learning rate or discount goes into all four)."""
-    names = [f"{maze}_{method}" for method in DEEP_METHODS if f"{maze}_{method}" in EXPERIMENTS]
-    agents = {name: OmegaConf.to_container(compose_cfg(name).agent) for name in names}
-    first = agents[names[0]]
-    for name in names[1:]:
-        diff = {k: (first.get(k), v) for k, v in agents[name].items() if first.get(k) != v}
-        assert not diff, f"{name} differs from {names[0]} in agent: {diff}"
+@pytest.mark.parametrize("method", METHODS)
+def test_a_method_is_the_same_setting_on_every_maze(method):
+    """One setting per method: the experiments of a method resolve to the same agent, HER and Smart Start settings on
+    every maze, so a maze's result is the method's, not a tuning's."""
+    settings = {}
+    for maze in MAZES:
+        cfg = compose_cfg(f"{maze}_{method}")
+        settings[maze] = {group: OmegaConf.to_container(cfg[group]) for group in ("agent", "her", "smart_start")}
+        settings[maze]["frames_per_batch"] = cfg.trainer.frames_per_batch
+    first = settings[MAZES[0]]
+    for maze in MAZES[1:]:
+        diff = {k: (first[k], v) for k, v in settings[maze].items() if first[k] != v}
+        assert not diff, f"{maze}_{method} differs from {MAZES[0]}_{method}: {diff}"
+
+
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_an_experiment_only_picks_a_maze_and_a_method(name):
+    """conf/experiment/<maze>_<method>.yaml holds the two picks and its name; conf/maze/*.yaml no learning setting."""
+    text = yaml.safe_load((CONF / "experiment" / f"{name}.yaml").read_text())
+    maze, method = name[: -len(method_of(name)) - 1], method_of(name)
+    assert text == {"defaults": [{"/maze": maze}, {"/method": method}], "experiment": name}
+    maze_cfg = yaml.safe_load((CONF / "maze" / f"{maze}.yaml").read_text())
+    assert set(maze_cfg) == {"defaults", "trainer"}
+    assert set(maze_cfg["trainer"]) <= {"total_env_steps", "eval_interval"}
+
+
+def test_the_smart_start_and_agent_group_defaults_are_the_deep_methods_settings():
+    """No experiment or method overrides the dqn agent or Smart Start group: their defaults are the setting."""
+    for method in ("dqn", "dqn_her", "ss", "ss_her"):
+        text = yaml.safe_load((CONF / "method" / f"{method}.yaml").read_text())
+        assert set(text) == {"defaults", "method"}, f"method/{method}.yaml sets more than its groups"
 
 
 # --- (b) every field carries a one-line comment ---
@@ -195,7 +214,12 @@ def test_gamma_out_of_range(gamma):
 
 @pytest.mark.parametrize("gamma", ["1.0", "1", "0.5"])
 def test_gamma_in_range(gamma):
-    validate_config(compose_cfg(overrides=[f"agent.gamma={gamma}"]))
+    validate_config(compose_cfg(overrides=[f"agent.gamma={gamma}", "agent.step_cost=1"]))
+
+
+def test_undiscounted_needs_a_step_cost():
+    with pytest.raises(ConfigError, match=r"^agent.gamma: 1 needs agent.step_cost > 0"):
+        validate_config(compose_cfg(overrides=["agent.gamma=1", "agent.step_cost=0"]))
 
 
 @pytest.mark.parametrize("eta", ["-0.1", "1.5"])
