@@ -1,0 +1,308 @@
+"""ss_drl.analysis.diagnose and scripts/diagnose.py: greedy accuracy and value error by distance to G, Q along the
+greedy path from S, and the training data, checked against numbers worked out by hand on easy_small."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from helpers import ROOT, compose_cfg
+from omegaconf import OmegaConf
+
+from ss_drl.agents.tabular import TabularQAgent
+from ss_drl.analysis.diagnose import (
+    DIAGNOSIS_FILE,
+    DIAGNOSIS_MD,
+    DiagnoseError,
+    accuracy_by_distance,
+    diagnose_agent,
+    diagnose_run,
+    format_markdown,
+    training_data,
+    value_gamma,
+)
+from ss_drl.envs.maze import load_maze
+from ss_drl.training.greedy import greedy_policy
+from ss_drl.training.outputs import EPISODE_COLUMNS, TRAIN_COLUMNS
+
+RIGHT, DOWN, LEFT, UP = range(4)
+GAMMA = 0.9
+
+
+def hand_distance(r: int, c: int) -> int | None:
+    """BFS distance to G = (1, 1) in easy_small, worked out from its layout (12 x 9): rows 0-2 all free (Manhattan),
+    the corridor rows 3-8 at columns 6-8 (Manhattan: up to row 2, then left), rows 9-11 all free (left of column 6:
+    right to column 6 first, 6 - c steps, then r - 1 + 5). None for walls."""
+    if r <= 2 or c >= 6:
+        return abs(r - 1) + abs(c - 1)
+    if r >= 9:
+        return (6 - c) + (r - 1) + 5
+    return None
+
+
+@pytest.fixture(scope="module")
+def maze():
+    return load_maze("easy_small")
+
+
+@pytest.fixture(scope="module")
+def free(maze):
+    """{cell: hand distance} of the 71 free cells other than G."""
+    out = {}
+    for r in range(maze.height):
+        for c in range(maze.width):
+            d = hand_distance(r, c)
+            if d:
+                out[maze.cell((r, c))] = d
+    return out
+
+
+def test_hand_distances_are_the_maze(maze, free):
+    assert len(free) == 71 and maze.n_free == 72
+    dist = maze.distances_from(maze.goal)
+    assert all(dist[maze.pos(c)] == d for c, d in free.items())
+    assert free[maze.start_cell] == 19
+
+
+def optimal_tabular(maze, free, gamma=GAMMA) -> TabularQAgent:
+    """A tabular agent whose table holds the exact optimal values: Q*(s, a) = gamma^d(s') (d(G) = 0: 1)."""
+    agent = TabularQAgent(OmegaConf.create({"gamma": gamma, "alpha": 0.1, "eps_start": 0.0}), maze)
+    for cell in free:
+        for a in range(4):
+            nxt = maze.cell(maze.move(maze.pos(cell), a))
+            agent.q[cell, a] = gamma ** (free.get(nxt, 0))
+    return agent
+
+
+# Bucket sizes by hand (width 10): d <= 10 are the 26 cells of rows 0-2 (d <= 8) and the 9 corridor cells with
+# r + c - 2 <= 10; d = 21 only (11, 0); the other 35 are 11-20.
+BUCKETS = [("1-10", 1, 10, 35), ("11-20", 11, 20, 35), ("21-30", 21, 30, 1)]
+
+
+def test_optimal_table_is_accurate_everywhere_with_no_value_error(maze, free):
+    agent = optimal_tabular(maze, free)
+    d = diagnose_agent(agent, maze, GAMMA, max_steps=100)
+    assert [(r["distances"], r["min"], r["max"], r["states"]) for r in d["accuracy_by_distance"]] == BUCKETS
+    assert [r["accuracy"] for r in d["accuracy_by_distance"]] == [1.0, 1.0, 1.0]
+    assert d["greedy_accuracy"] == 1.0
+    for row in [*d["value_error_by_distance"], d["value_error"]]:
+        assert row["mean_abs_error"] == pytest.approx(0, abs=1e-6)  # float32 of q_values
+        assert row["mean_signed_error"] == pytest.approx(0, abs=1e-6)
+    assert d["value_error"]["states"] == 71
+    path = d["greedy_path"]
+    assert path["success"] and path["length"] == 19 and path["optimal_length"] == 19
+    assert path["first_off_shortest"] is None and not path["loops"]
+    assert [s["distance"] for s in path["steps"]] == list(range(19, 0, -1))
+    assert path["mean_abs_error"] == pytest.approx(0, abs=1e-6)
+    assert [s["optimal"] for s in path["steps"]] == pytest.approx([GAMMA ** (k - 1) for k in range(19, 0, -1)])
+
+
+def test_flipped_greedy_actions_by_hand(maze, free):
+    agent = optimal_tabular(maze, free)
+    s = maze.start_cell
+    # Each flip moves away from G or bumps: (1, 2) d 1 right to d 2; S (10, 1) d 19 left to d 20; (11, 0) d 21 left
+    # bumps off the grid.
+    flips = {maze.cell((1, 2)): RIGHT, s: LEFT, maze.cell((11, 0)): LEFT}
+    for cell, a in flips.items():
+        agent.q[cell, a] = 1.5
+    d = diagnose_agent(agent, maze, GAMMA, max_steps=100, width=10)
+    assert [r["accuracy"] for r in d["accuracy_by_distance"]] == [34 / 35, 34 / 35, 0.0]
+    assert d["greedy_accuracy"] == pytest.approx(68 / 71)
+    # max Q is 1.5 in the flipped cells, exact elsewhere
+    signed = [(1.5 - GAMMA**0) / 35, (1.5 - GAMMA**18) / 35, 1.5 - GAMMA**20]
+    assert [r["mean_signed_error"] for r in d["value_error_by_distance"]] == pytest.approx(signed, abs=1e-6)
+    assert [r["mean_abs_error"] for r in d["value_error_by_distance"]] == pytest.approx(signed, abs=1e-6)
+    # From S the greedy step goes left to (10, 0) (d 20), whose best moves are right (back to S) and up, equal:
+    # argmax takes the first, right, so the rollout loops at once.
+    path = d["greedy_path"]
+    assert not path["success"] and path["loops"]
+    assert [(st["row"], st["col"], st["distance"]) for st in path["steps"]] == [(10, 1, 19), (10, 0, 20)]
+    assert path["first_off_shortest"] == {"step": 0, "cell": s, "row": 10, "col": 1, "distance": 19}
+    assert path["mean_abs_error"] == pytest.approx((1.5 - GAMMA**18) / 2, abs=1e-6)
+    # a width of 5 splits the same flips into other buckets: 1-5 holds (1, 2), 16-20 S, 21-25 (11, 0)
+    rows = {r["distances"]: r for r in accuracy_by_distance(greedy_policy(agent, maze), maze, 5)}
+    by_hand = {}
+    for d_ in free.values():
+        key = f"{(d_ - 1) // 5 * 5 + 1}-{(d_ - 1) // 5 * 5 + 5}"
+        by_hand[key] = by_hand.get(key, 0) + 1
+    assert {k: r["states"] for k, r in rows.items()} == by_hand
+    assert rows["1-5"]["accuracy"] == pytest.approx(1 - 1 / by_hand["1-5"])
+    assert rows["16-20"]["accuracy"] == pytest.approx(1 - 1 / by_hand["16-20"])
+    assert rows["21-25"]["accuracy"] == 0.0
+    assert rows["6-10"]["accuracy"] == rows["11-15"]["accuracy"] == 1.0
+
+
+class ConstantQ:
+    """A fake agent whose Q is the same number for every state, goal and action."""
+
+    def __init__(self, value: float):
+        self.value = value
+
+    def q_values(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
+        return torch.full((goals.numel(), states.numel(), 4), self.value)
+
+
+def test_constant_q_by_hand(maze, free):
+    c, gamma = 0.3, 0.5
+    d = diagnose_agent(ConstantQ(c), maze, gamma, max_steps=50)
+    # argmax of equal values is action 0 (right) everywhere: closer only left of G's column (the 3 cells of
+    # column 0 in rows 0-2, d 1-2) and in rows 9-11 left of column 6 (18 cells: (11, 0) is d 21, 17 are 11-20).
+    assert [r["accuracy"] for r in d["accuracy_by_distance"]] == pytest.approx([3 / 35, 17 / 35, 1.0])
+    for lo, hi, row in zip((1, 11, 21), (10, 20, 30), d["value_error_by_distance"]):
+        ds = np.array([v for v in free.values() if lo <= v <= hi])
+        err = c - gamma ** (ds - 1.0)
+        assert row["mean_signed_error"] == pytest.approx(err.mean(), abs=1e-6)
+        assert row["mean_abs_error"] == pytest.approx(np.abs(err).mean(), abs=1e-6)
+    # the path goes right along row 10 from S, (10, 1) .. (10, 8), and bumps into the grid's edge: a loop; its
+    # first step away from G is (10, 6) -> (10, 7), step 5
+    path = d["greedy_path"]
+    assert [(s["row"], s["col"]) for s in path["steps"]] == [(10, col) for col in range(1, 9)]
+    assert path["loops"] and not path["success"]
+    assert path["first_off_shortest"]["step"] == 5 and path["first_off_shortest"]["distance"] == 14
+    dists = np.array([19, 18, 17, 16, 15, 14, 15, 16])
+    assert [s["distance"] for s in path["steps"]] == dists.tolist()
+    assert path["mean_abs_error"] == pytest.approx(np.abs(c - gamma ** (dists - 1.0)).mean(), abs=1e-6)
+
+
+def test_value_gamma():
+    assert value_gamma(OmegaConf.create({"gamma": 0.95})) == 0.95
+    assert value_gamma(OmegaConf.create({"gamma": 0.95, "step_cost": 1.0})) == 0.95
+    assert value_gamma(OmegaConf.create({"gamma": 1.0, "step_cost": 1.0})) == 0.99  # the DQN's UNDISCOUNTED_SCALE
+
+
+def write_csv(path, columns, rows):
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(columns)
+        for row in rows:
+            w.writerow([row.get(c, 0) for c in columns])
+
+
+def test_training_data_by_hand(tmp_path):
+    shares = [0.1, 0.2, 0.3, 0.5]
+    write_csv(
+        tmp_path / "train.csv",
+        TRAIN_COLUMNS,
+        [{"env_steps": 100 * (i + 1), "goal_share": g} for i, g in enumerate(shares)],
+    )
+    success = [0, 0, 1, 0, 1, 1, 0, 1]
+    smart = [1, 0, 1, 1, 0, 0, 1, 1]
+    write_csv(
+        tmp_path / "episodes.csv",
+        EPISODE_COLUMNS,
+        [
+            {"episode": i + 1, "env_steps": 50 * (i + 1), "success": s, "smart_start": m}
+            for i, (s, m) in enumerate(zip(success, smart))
+        ],
+    )
+    t = training_data(tmp_path)  # total: the largest env steps seen, 400; the last quarter is env steps > 300
+    assert t["total_env_steps"] == 400 and t["last_quarter_after_env_steps"] == 300
+    assert t["goal_share_mean"] == pytest.approx(0.275)
+    assert t["goal_share_last_quarter"] == pytest.approx(0.5)
+    assert t["episodes"] == 8 and t["first_success_episode"] == 3 and t["episodes_after_first_success"] == 5
+    assert t["success_after_first_success"] == pytest.approx(3 / 5)
+    assert t["success_last_quarter"] == pytest.approx(1 / 2)  # episodes at 350 and 400
+    assert t["smart_start_share"] == pytest.approx(5 / 8)
+    assert t["smart_start_share_last_quarter"] == 1.0
+    assert "train_note" not in t and "episodes_note" not in t
+
+    t = training_data(tmp_path, total_env_steps=320)  # the last quarter: > 240
+    assert t["goal_share_last_quarter"] == pytest.approx(0.4)
+    assert t["success_last_quarter"] == pytest.approx(3 / 4)  # 250, 300, 350, 400
+    t = training_data(tmp_path, total_env_steps=1000)  # nothing in the last quarter
+    assert t["goal_share_last_quarter"] is None and t["success_last_quarter"] is None
+
+
+def test_training_data_of_old_and_unlucky_runs(tmp_path):
+    write_csv(tmp_path / "episodes.csv", EPISODE_COLUMNS, [{"episode": i, "env_steps": 10 * i} for i in (1, 2)])
+    t = training_data(tmp_path)
+    assert t["goal_share_mean"] is None and "no train.csv" in t["train_note"]
+    assert t["first_success_episode"] is None and t["success_after_first_success"] is None
+    assert t["success_last_quarter"] == 0.0  # the episode at 20 > 15
+    old = [c for c in TRAIN_COLUMNS if c not in ("her_share", "goal_share")]
+    write_csv(tmp_path / "train.csv", old, [{"env_steps": 20}])
+    t = training_data(tmp_path)
+    assert t["goal_share_mean"] is None and "no goal_share column" in t["train_note"]
+    (tmp_path / "episodes.csv").unlink()
+    assert "no episodes.csv" in training_data(tmp_path)["episodes_note"]
+
+
+def test_diagnose_run_errors(tmp_path):
+    with pytest.raises(DiagnoseError, match="no checkpoint.pt"):
+        diagnose_run(tmp_path)
+    with pytest.raises(DiagnoseError, match="bucket width must be >= 1"):
+        diagnose_run(tmp_path, width=0)
+    (tmp_path / "checkpoint.pt").write_text("not a checkpoint")
+    with pytest.raises(DiagnoseError, match="cannot load"):
+        diagnose_run(tmp_path)
+
+
+def run_script(*args):
+    return subprocess.run(
+        [sys.executable, "scripts/diagnose.py", *map(str, args)], cwd=ROOT, capture_output=True, text=True, timeout=300
+    )
+
+
+def test_script_without_checkpoint_is_a_clear_error(tmp_path):
+    result = run_script(tmp_path)
+    assert result.returncode == 2
+    assert result.stderr.strip() == f"diagnose.py: error: no checkpoint.pt in {tmp_path}"
+
+
+@pytest.mark.slow
+def test_script_on_a_tabular_smart_start_run(tmp_path):
+    from ss_drl.training.trainer import Trainer
+
+    run = tmp_path / "run"
+    cfg = compose_cfg("+experiment=easy_small_tabular_ss", "trainer.total_env_steps=3000")
+    summary = Trainer(cfg, run).train()
+    result = run_script(run)
+    assert result.returncode == 0, result.stderr
+    d = json.loads((run / DIAGNOSIS_FILE).read_text())
+    assert set(d) >= {
+        "run_dir",
+        "experiment",
+        "agent",
+        "value_gamma",
+        "bucket_width",
+        "greedy_accuracy",
+        "accuracy_by_distance",
+        "greedy_path",
+        "value_error",
+        "value_error_by_distance",
+        "training",
+    }
+    assert d["agent"] == "tabular" and d["value_gamma"] == 0.99 and d["bucket_width"] == 10
+    assert [r["distances"] for r in d["accuracy_by_distance"]] == ["1-10", "11-20", "21-30"]
+    assert round(d["greedy_accuracy"], 4) == summary["final_greedy_accuracy"]
+    path = d["greedy_path"]
+    assert path["length"] == summary["final_eval_length"] and path["optimal_length"] == 19
+    if path["success"]:
+        assert len(path["steps"]) == path["length"]
+    training = d["training"]
+    assert training["goal_share_mean"] == 1.0 and training["goal_share_last_quarter"] == 1.0  # tabular: only G
+    assert training["total_env_steps"] == summary["env_steps"] == 3000
+    assert training["episodes"] == summary["episodes"]
+    assert 0 < training["smart_start_share"] <= 1
+    # the markdown: the section on stdout, the same in diagnosis.md
+    out = result.stdout
+    assert out.startswith("## easy_small_tabular_ss seed 0 (tabular_ss, agent tabular)")
+    for heading in ("### Greedy accuracy and value error by distance to G", "### Q along the greedy path from S"):
+        assert heading in out
+    assert "| 1-10 | 35 |" in out and "| 21-30 | 1 |" in out and "- Mean goal_share" in out
+    assert (run / DIAGNOSIS_MD).read_text() == out
+
+    # --out: one list for all the runs, nothing new in the run directories
+    (run / DIAGNOSIS_FILE).unlink()
+    result = run_script(run, run, "--bucket-width", "5", "--out", tmp_path / "report")
+    assert result.returncode == 0, result.stderr
+    both = json.loads((tmp_path / "report" / DIAGNOSIS_FILE).read_text())
+    assert len(both) == 2 and both[0] == both[1] and both[0]["bucket_width"] == 5
+    assert not (run / DIAGNOSIS_FILE).exists()
+    assert result.stdout.count("## easy_small_tabular_ss") == 2
+    assert format_markdown(diagnose_run(run, 5)) in result.stdout
