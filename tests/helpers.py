@@ -15,6 +15,16 @@ def compose_cfg(*overrides: str):
         return compose("config", overrides=list(overrides))
 
 
+#: Overrides for a run of a few hundred env steps on a tiny network (end-to-end tests of the plumbing).
+TINY = [
+    "trainer.total_env_steps=300",
+    "agent.learning_starts=100",
+    "agent.batch_size=16",
+    "agent.hidden=[16,16]",
+    "agent.embed_dim=8",
+    "trainer.eval_interval=150",
+]
+
 #: The spec: steps on a shortest S -> G path of every shipped maze.
 SHORTEST = {
     "easy": 31,

@@ -19,21 +19,13 @@ import zipfile
 from pathlib import Path
 
 import pytest
+from helpers import ROOT, TINY
 from omegaconf import OmegaConf
 
 from ss_drl.training.outputs import CHECKPOINT_FILE, EPISODES_FILE, EVAL_FILE, SUMMARY_FILE
 
 pytestmark = pytest.mark.slow
 
-ROOT = Path(__file__).resolve().parents[1]
-TINY = [
-    "trainer.total_env_steps=300",
-    "agent.learning_starts=100",
-    "agent.batch_size=16",
-    "agent.hidden=[16,16]",
-    "agent.embed_dim=8",
-    "trainer.eval_interval=150",
-]
 #: What a checkout holds besides the sources: never copied into the build.
 NOT_SOURCES = shutil.ignore_patterns(
     ".git", ".venv", "build", "dist", "*.egg-info", "__pycache__", "outputs", "multirun", "wandb", ".*_cache"
@@ -96,7 +88,7 @@ def test_wheel_holds_every_module_and_config(wheel):
     assert not [n for n in names if n.split("/")[0] in ("tests", "scripts", "benchmarks", "conf")], sorted(names)
     entry_points = next(n for n in names if n.endswith(".dist-info/entry_points.txt"))
     scripts = zipfile.ZipFile(wheel).read(entry_points).decode()
-    for script in ("ss-drl-train = ss_drl.cli:train_main", "ss-drl-evaluate", "ss-drl-plot"):
+    for script in ("ss-drl-train = ss_drl.cli:train_main", "ss-drl-evaluate", "ss-drl-plot", "ss-drl-diagnose"):
         assert script in scripts, scripts
 
 
@@ -131,6 +123,8 @@ def test_installed_wheel_trains_evaluates_and_plots_from_another_directory(wheel
     plots = elsewhere / "plots"
     run([venv / "bin" / "ss-drl-plot", elsewhere / "outputs", "--bootstrap", "20", "--out", plots], elsewhere)
     assert "easy_small" in (plots / "results.md").read_text()
+    run([venv / "bin" / "ss-drl-diagnose", run_dir], elsewhere)
+    assert (run_dir / "diagnosis.json").stat().st_size > 0
 
 
 def test_editable_install_reads_the_checkouts_conf(tmp_path):
@@ -145,9 +139,9 @@ def test_editable_install_reads_the_checkouts_conf(tmp_path):
     assert conf == src / "conf"
 
     # An edit to conf/*.yaml is seen without reinstalling.
-    experiment = src / "conf" / "experiment" / "easy_small_ss_her.yaml"
-    text = experiment.read_text()
+    maze = src / "conf" / "maze" / "easy_small.yaml"
+    text = maze.read_text()
     assert "\ntrainer:\n  total_env_steps: " in text
-    experiment.write_text(text.replace("\ntrainer:\n  total_env_steps: ", "\ntrainer:\n  total_env_steps: 4321  # ", 1))
+    maze.write_text(text.replace("\ntrainer:\n  total_env_steps: ", "\ntrainer:\n  total_env_steps: 4321  # ", 1))
     job = run([tmp_path / "venv" / "bin" / "ss-drl-train", "+experiment=easy_small_ss_her", "--cfg", "job"], elsewhere)
     assert OmegaConf.create(job.stdout).trainer.total_env_steps == 4321

@@ -14,20 +14,11 @@ import warnings
 from pathlib import Path
 
 import pytest
-from helpers import ROOT, compose_cfg
+from helpers import ROOT, TINY, compose_cfg
 from omegaconf import OmegaConf
 
 from ss_drl.training.outputs import EPISODES_FILE, FAILED_FILE, SUMMARY_FILE
 from ss_drl.training.trainer import Trainer
-
-TINY = [
-    "trainer.total_env_steps=300",
-    "agent.learning_starts=100",
-    "agent.batch_size=16",
-    "agent.hidden=[16,16]",
-    "agent.embed_dim=8",
-    "trainer.eval_interval=150",
-]
 
 
 def sweep(sweep_dir: Path, *overrides: str) -> subprocess.CompletedProcess:

@@ -153,7 +153,7 @@ def _one_line(text: object) -> str:
     return " ".join(str(text).split())
 
 
-def _read_csv(
+def read_run_csv(
     path: Path, columns: tuple[str, ...], numeric: tuple[str, ...], optional: tuple[str, ...] = ()
 ) -> dict[str, np.ndarray]:
     """Read a run CSV strictly: the header must hold ``columns`` (except those in ``optional``), every row must have
@@ -218,8 +218,8 @@ def load_run(path: str | os.PathLike) -> Run:
         raise IncompleteRun(f"{SUMMARY_FILE} lacks {', '.join(missing)}")
     if summary[SK_COMPLETED] is not True:
         raise IncompleteRun(f"{SUMMARY_FILE} says {SK_COMPLETED}={json.dumps(summary[SK_COMPLETED])}")
-    episodes = _read_csv(path / EPISODES_FILE, EPISODE_COLUMNS, EPISODE_NUMERIC)
-    evals = _read_csv(path / EVAL_FILE, EVAL_COLUMNS, EVAL_NUMERIC, EVAL_OPTIONAL)
+    episodes = read_run_csv(path / EPISODES_FILE, EPISODE_COLUMNS, EPISODE_NUMERIC)
+    evals = read_run_csv(path / EVAL_FILE, EVAL_COLUMNS, EVAL_NUMERIC, EVAL_OPTIONAL)
     steps = evals[EV_ENV_STEPS]
     back = np.flatnonzero(np.diff(steps) < 0)
     if back.size:
@@ -602,7 +602,7 @@ def load_train_log(run: Run) -> dict[str, np.ndarray] | None:
     path = run.path / TRAIN_FILE
     if not path.is_file():
         return None
-    return _read_csv(path, TRAIN_COLUMNS, TRAIN_COLUMNS)
+    return read_run_csv(path, TRAIN_COLUMNS, TRAIN_COLUMNS)
 
 
 def mean_over_seeds(logs: Sequence[dict[str, np.ndarray]], column: str, points: int = 200) -> tuple[np.ndarray, ...]:

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ss_drl.analysis.aggregate import IncompleteRun, _read_csv
+from ss_drl.analysis.aggregate import IncompleteRun, read_run_csv
 from ss_drl.analysis.tables import format_markdown_table
 from ss_drl.envs.maze import Maze
 from ss_drl.training.greedy import greedy_accuracy, greedy_policy, greedy_rollout
@@ -218,7 +218,7 @@ def training_data(run_dir: Path, total_env_steps: float | None = None) -> dict:
     train, episodes, notes = None, None, {}
     if (run_dir / TRAIN_FILE).is_file():
         try:
-            train = _read_csv(run_dir / TRAIN_FILE, ("env_steps",), ("env_steps", "goal_share"), ("goal_share",))
+            train = read_run_csv(run_dir / TRAIN_FILE, ("env_steps",), ("env_steps", "goal_share"), ("goal_share",))
         except IncompleteRun as e:
             notes["train_note"] = f"{TRAIN_FILE} unusable: {e}"
         else:
@@ -230,7 +230,7 @@ def training_data(run_dir: Path, total_env_steps: float | None = None) -> dict:
     columns = ("env_steps", "success", "smart_start")
     if (run_dir / EPISODES_FILE).is_file():
         try:
-            episodes = _read_csv(run_dir / EPISODES_FILE, columns, columns)
+            episodes = read_run_csv(run_dir / EPISODES_FILE, columns, columns)
         except IncompleteRun as e:
             notes["episodes_note"] = f"{EPISODES_FILE} unusable: {e}"
     else:
