@@ -18,8 +18,13 @@ from ss_drl.envs.maze import load_maze
 from ss_drl.her import HindsightReplayBuffer
 
 
+#: The plain DQN these tests compute by hand (0/1 rewards, gamma < 1, TD(0), no clipping); each test adds its own.
+PLAIN = {"agent.gamma": "0.95", "agent.step_cost": "0", "agent.n_step": "1", "agent.clip_targets": "false"}
+
+
 def make_agent(*overrides: str) -> DQNAgent:
-    cfg = compose_cfg("+experiment=easy_small_dqn_her", *overrides)
+    settings = dict(PLAIN, **dict(o.split("=", 1) for o in overrides))
+    cfg = compose_cfg("+experiment=easy_small_dqn_her", *(f"{k}={v}" for k, v in settings.items()))
     maze = load_maze("easy_small")
     buffer = HindsightReplayBuffer(1000, 1, cfg.agent.batch_size, k=0)
     torch.manual_seed(0)
