@@ -17,7 +17,6 @@ from ss_drl.agents.dqn import DQNAgent
 from ss_drl.envs.maze import load_maze
 from ss_drl.her import HindsightReplayBuffer
 
-
 #: The plain DQN these tests compute by hand (0/1 rewards, gamma < 1, TD(0), no clipping); each test adds its own.
 PLAIN = {"agent.gamma": "0.95", "agent.step_cost": "0", "agent.n_step": "1", "agent.clip_targets": "false"}
 
