@@ -52,16 +52,6 @@ class FirstGoal:
     episode: int | None = None
 
 
-@dataclasses.dataclass
-class Evaluation:
-    """One greedy evaluation episode from S."""
-
-    env_steps: int  # env steps of training when it ran
-    length: int  # its length (max_steps when it failed)
-    success: bool
-    accuracy: float  # greedy accuracy over the maze (see :func:`~ss_drl.training.greedy.greedy_accuracy`)
-
-
 class UpdateLog:
     """The metrics of the updates since the last train.csv row, kept as tensors until the row is written."""
 
@@ -158,7 +148,7 @@ class Trainer:
         self.collector = MazeCollector(self.env, self.agent, self.smart_start, cfg.trainer.frames_per_batch)
         self.episodes = 0
         self.first_goal = FirstGoal()
-        self.last_eval: Evaluation | None = None
+        self.last_accuracy: float | None = None  # greedy accuracy at the last evaluation
         self.evals: list[EvalRecord] = []  # every evaluation of the run (kept in checkpoints), for the learned rule
         self.next_eval = 0
         self.next_checkpoint = cfg.trainer.checkpoint_interval
@@ -222,7 +212,7 @@ class Trainer:
                     )
             if update_log.rows:
                 self._log_updates(update_log)
-            if self.last_eval is None or self.last_eval.env_steps != collector.env_steps:
+            if not self.evals or self.evals[-1].env_steps != collector.env_steps:
                 self.evaluate()
             summary = self.summary(completed=True, wall=time.perf_counter() - self.start_time)
             self.save_checkpoint()
@@ -299,7 +289,7 @@ class Trainer:
             success = sum(self._recent) / max(len(self._recent), 1)
             bar.set_postfix(episodes=self.episodes, success=f"{success:.2f}")
 
-    def evaluate(self) -> Evaluation:
+    def evaluate(self) -> EvalRecord:
         rollout = greedy_rollout(self.agent, self.maze, self.cfg.env.max_steps)
         steps = self.collector.env_steps
         wall = round(time.perf_counter() - self.start_time, 3)
@@ -321,14 +311,14 @@ class Trainer:
             },
             step=steps,
         )
-        self.last_eval = Evaluation(steps, rollout.length, rollout.success, rollout.accuracy)
         self.evals.append(EvalRecord(steps, rollout.length, bool(rollout.success), wall))
+        self.last_accuracy = rollout.accuracy
         while self.next_eval <= steps:
             self.next_eval += self.cfg.trainer.eval_interval
-        return self.last_eval
+        return self.evals[-1]
 
     def summary(self, completed: bool, wall: float) -> dict:
-        last = self.last_eval
+        last = self.evals[-1] if self.evals else None
         rule = learned(self.evals, self.optimal_length, int(self.cfg.trainer.total_env_steps))
         return {
             "experiment": self.cfg.experiment,
@@ -341,7 +331,7 @@ class Trainer:
             "episodes": self.episodes,
             "env_steps": self.collector.env_steps,
             "final_eval_length": None if last is None else last.length,
-            "final_greedy_accuracy": None if last is None else round(last.accuracy, 4),
+            "final_greedy_accuracy": None if last is None else round(self.last_accuracy, 4),
             "optimal_length": self.optimal_length,
             "learned_env_step": rule.env_step,
             "learned_wall_s": rule.wall_s,
@@ -369,7 +359,7 @@ class Trainer:
             "collector": self.collector.state_dict(),
             "episodes": self.episodes,
             "first_goal": dataclasses.asdict(self.first_goal),
-            "last_eval": None if self.last_eval is None else dataclasses.asdict(self.last_eval),
+            "last_accuracy": self.last_accuracy,
             "evals": [tuple(e) for e in self.evals],
             "next_eval": self.next_eval,
             "next_checkpoint": self.next_checkpoint,
@@ -399,7 +389,7 @@ class Trainer:
         self.collector.load_state_dict(state["collector"])
         self.episodes = state["episodes"]
         self.first_goal = FirstGoal(**state["first_goal"])
-        self.last_eval = None if state["last_eval"] is None else Evaluation(**state["last_eval"])
+        self.last_accuracy = state["last_accuracy"]
         if "evals" not in state:
             raise ValueError("trainer.resume: the checkpoint predates the list of evaluations; start the run anew")
         self.evals = [EvalRecord(*e) for e in state["evals"]]
