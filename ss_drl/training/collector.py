@@ -189,7 +189,6 @@ class MazeCollector:
     def load_state_dict(self, state: dict) -> None:
         self.env_steps = state["env_steps"]
         self.ep_length, self.ep_return = state["ep_length"].clone(), state["ep_return"].clone()
-        # Checkpoints up to 92d551c started each episode inside the batch that ended the previous one.
-        self.starting = state.get("starting", torch.zeros(self.num_envs, dtype=torch.bool)).clone()
+        self.starting = state["starting"].clone()
         self._td = state["td"]
         self.env.set_state(state["env_cell"], state["env_steps_in_episode"])
