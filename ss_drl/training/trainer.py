@@ -381,6 +381,8 @@ class Trainer:
 
     def _restore(self) -> tuple[int, ...]:
         state = ckpt.load(self.run_dir)
+        if "evals" not in state:  # written before 844f19d: no evaluation list, and the old loop's collector state
+            raise ValueError("trainer.resume: the checkpoint predates the list of evaluations; start the run anew")
         ckpt.check_compatible(state["config"], self.resolved)
         self.agent.load_state_dict(state["agent"])
         self.counts.load_state_dict(state["counts"])
@@ -390,8 +392,6 @@ class Trainer:
         self.episodes = state["episodes"]
         self.first_goal = FirstGoal(**state["first_goal"])
         self.last_accuracy = state["last_accuracy"]
-        if "evals" not in state:
-            raise ValueError("trainer.resume: the checkpoint predates the list of evaluations; start the run anew")
         self.evals = [EvalRecord(*e) for e in state["evals"]]
         self.next_eval, self.next_checkpoint = state["next_eval"], state["next_checkpoint"]
         self.next_log = state["next_log"]
