@@ -2,7 +2,8 @@
 
 * :func:`random_argmax`: argmax with ties broken uniformly at random (Smart Start's UCB, the planner, the table).
 * :func:`manhattan`: grid distance between flat cell indices (Smart Start's arrival test, the planner's targets).
-* :func:`linear_epsilon` and :func:`epsilon_greedy`: the exploration schedule and the epsilon-greedy action.
+* :func:`linear_schedule` and :func:`epsilon_greedy`: the schedules of epsilon and the learning rate, and the
+  epsilon-greedy action.
 """
 
 from __future__ import annotations
@@ -27,8 +28,9 @@ def manhattan(cells: torch.Tensor, others: torch.Tensor, width: int) -> torch.Te
     return (cells // width - others // width).abs() + (cells % width - others % width).abs()
 
 
-def linear_epsilon(env_steps: int, start: float, end: float, decay_steps: int) -> float:
-    """Epsilon annealed linearly from ``start`` at step 0 to ``end`` at ``decay_steps``, constant after."""
+def linear_schedule(env_steps: int, start: float, end: float, decay_steps: int) -> float:
+    """A value annealed linearly from ``start`` at step 0 to ``end`` at ``decay_steps``, constant after (epsilon;
+    the learning rate)."""
     frac = min(1.0, env_steps / max(1, decay_steps))
     return start + frac * (end - start)
 

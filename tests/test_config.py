@@ -222,6 +222,11 @@ def test_undiscounted_needs_a_step_cost():
         validate_config(compose_cfg(overrides=["agent.gamma=1", "agent.step_cost=0"]))
 
 
+@pytest.mark.parametrize("lr_end", ["0", "-0.001", "fast"])
+def test_lr_end_must_be_a_positive_number(lr_end):
+    assert_config_error(compose_cfg(overrides=[f"agent.lr_end={lr_end}"]), "agent.lr_end", lr_end)
+
+
 @pytest.mark.parametrize("eta", ["-0.1", "1.5"])
 def test_eta_out_of_range(eta):
     message = assert_config_error(compose_cfg(overrides=[f"smart_start.eta={eta}"]), "smart_start.eta", eta)

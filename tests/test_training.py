@@ -159,7 +159,7 @@ def test_smart_start_without_guided_phases_collects_the_same_transitions():
 
 def test_train_csv_rows_every_log_interval_updates(tmp_path):
     from ss_drl.agents import UPDATE_METRICS
-    from ss_drl.ops import linear_epsilon
+    from ss_drl.ops import linear_schedule
     from ss_drl.training.outputs import TRAIN_COLUMNS, TRAIN_FILE
 
     cfg = compose_cfg(
@@ -182,7 +182,7 @@ def test_train_csv_rows_every_log_interval_updates(tmp_path):
         assert r["loss"] >= 0 and r["td_abs"] >= 0 and r["updates_per_s"] > 0
         assert r["her_share"] == pytest.approx(round(32 * 4 / 5) / 32)  # k = 4: 26 of 32 items relabeled
         assert 0 <= r["goal_share"] <= 1
-        assert r["epsilon"] == pytest.approx(linear_epsilon(int(r["env_steps"]) - 16, 1.0, 0.05, 5000), abs=0.01)
+        assert r["epsilon"] == pytest.approx(linear_schedule(int(r["env_steps"]) - 16, 1.0, 0.05, 5000), abs=0.01)
     assert set(UPDATE_METRICS) <= set(TRAIN_COLUMNS)
     # Without HER no goal is relabeled, and every batch's goal is G.
     no_her = compose_cfg(
@@ -193,3 +193,33 @@ def test_train_csv_rows_every_log_interval_updates(tmp_path):
     column = {name: i for i, name in enumerate(TRAIN_COLUMNS)}
     assert lines and all(float(line.split(",")[column["her_share"]]) == 0 for line in lines)
     assert all(float(line.split(",")[column["goal_share"]]) == 1 for line in lines)
+
+
+@pytest.mark.parametrize("lr_end", [None, 0.0001])
+def test_learning_rate_decays_linearly_over_the_budget(tmp_path, monkeypatch, lr_end):
+    """``agent.lr_end``: every update of a batch collected from env step t uses lr + (t / budget) (lr_end - lr);
+    without it the rate stays ``agent.lr``."""
+    from ss_drl.agents.dqn import DQNAgent
+
+    seen = []  # (env steps when the batch was collected, learning rate of the update)
+    update = DQNAgent.update
+
+    def recording(agent):
+        seen.append(agent.learning_rate)
+        return update(agent)
+
+    monkeypatch.setattr(DQNAgent, "update", recording)
+    end = "null" if lr_end is None else lr_end
+    cfg = compose_cfg("+experiment=easy_small_ss_her", "trainer.total_env_steps=1000", f"agent.lr_end={end}", *SMALL)
+    trainer = Trainer(cfg, tmp_path)
+    trainer.train()
+    assert len(seen) >= 1000 - 100
+    if lr_end is None:
+        assert set(seen) == {0.001}
+        return
+    # The first updates (the batch that crosses env step 100, learning_starts) and the last (a batch that starts at
+    # most 16 steps before the end) against the hand values 0.001 - 0.0009 t / 1000.
+    assert 0.001 - 0.0009 * 100 / 1000 < seen[0] <= 0.001 - 0.0009 * 84 / 1000
+    assert 0.0001 <= seen[-1] <= 0.0001 + 0.0009 * 16 / 1000
+    assert all(a >= b for a, b in zip(seen, seen[1:]))
+    assert trainer.agent.optimizer.state_dict()["param_groups"][0]["lr"] == seen[-1]  # checkpointed with the optimizer

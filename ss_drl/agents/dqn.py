@@ -247,6 +247,16 @@ class DQNAgent:
         return ((1 - gamma) * q + c) / ((1 - gamma) + c * gamma)
 
     # --- learning ----------------------------------------------------------------------------------------------
+    @property
+    def learning_rate(self) -> float:
+        return self.optimizer.param_groups[0]["lr"]
+
+    @learning_rate.setter
+    def learning_rate(self, lr: float) -> None:
+        """Set by the trainer each batch when ``agent.lr_end`` schedules a decay; checkpointed with the optimizer."""
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+
     def store(self, batch: TensorDictBase) -> None:
         """Write a collected (T, N) batch to the HER replay buffer."""
         self.replay_buffer.extend(batch)

@@ -100,6 +100,8 @@ def validate_config(cfg: DictConfig) -> None:
         _number(cfg, "agent.alpha", low=0, high=1, low_open=True)
     else:
         _number(cfg, "agent.lr", low=0, low_open=True)
+        if cfg.agent.get("lr_end") is not None:
+            _number(cfg, "agent.lr_end", low=0, low_open=True)
         batch = _number(cfg, "agent.batch_size", low=1, integer=True)
         buffer = _number(cfg, "agent.buffer_size", low=1, integer=True)
         if batch > buffer:

@@ -29,7 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 from ss_drl.agents import UPDATE_METRICS, Agent
 from ss_drl.envs.batched import BatchedMazeEnv
 from ss_drl.envs.maze import Maze, load_maze
-from ss_drl.ops import linear_epsilon
+from ss_drl.ops import linear_schedule
 from ss_drl.smart_start import CountModel, Planner, SmartStart
 from ss_drl.training import checkpoint as ckpt
 from ss_drl.training.collector import Episode, MazeCollector
@@ -170,6 +170,7 @@ class Trainer:
         cfg, agent, collector = self.cfg, self.agent, self.collector
         total = int(cfg.trainer.total_env_steps)
         eps = cfg.agent
+        lr_end = eps.get("lr_end")  # the DQN learner's learning-rate decay, if any
         start = time.perf_counter()
         self.start_time = start - self.wall_before
         self.update_log = update_log = UpdateLog(agent.updates)
@@ -178,7 +179,9 @@ class Trainer:
         try:
             while collector.env_steps < total:
                 # 1. Collect: guided phase (Smart Start) at episode starts, then epsilon-greedy.
-                agent.epsilon = linear_epsilon(collector.env_steps, eps.eps_start, eps.eps_end, eps.eps_decay_steps)
+                agent.epsilon = linear_schedule(collector.env_steps, eps.eps_start, eps.eps_end, eps.eps_decay_steps)
+                if lr_end is not None:
+                    agent.learning_rate = linear_schedule(collector.env_steps, eps.lr, lr_end, total)
                 batch, finished = collector.rollout(max_frames=total - collector.env_steps)
                 # 2. Count model.
                 self.counts.update(
