@@ -18,7 +18,13 @@ from ss_drl.envs.maze import load_maze
 from ss_drl.her import HindsightReplayBuffer
 
 #: The plain DQN these tests compute by hand (0/1 rewards, gamma < 1, TD(0), no clipping); each test adds its own.
-PLAIN = {"agent.gamma": "0.95", "agent.step_cost": "0", "agent.n_step": "1", "agent.clip_targets": "false"}
+PLAIN = {  # TD(0) on 0/1 rewards with hard target copies: the setting the hand computations below are written for
+    "agent.gamma": "0.95",
+    "agent.step_cost": "0",
+    "agent.n_step": "1",
+    "agent.clip_targets": "false",
+    "agent.target_update": "hard",
+}
 
 
 def make_agent(*overrides: str) -> DQNAgent:
