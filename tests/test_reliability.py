@@ -56,6 +56,7 @@ def _train_cmd(run_dir: Path, *extra: str) -> list[str]:
         "+experiment=easy_small_ss_her",
         "trainer.total_env_steps=4000",
         "trainer.checkpoint_interval=500",
+        "env.max_steps=100",  # episodes end by the cut, whatever the agent does: several before the first checkpoint
         *SMALL,
         f"hydra.run.dir={run_dir}",
         *extra,

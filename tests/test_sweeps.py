@@ -238,7 +238,9 @@ def test_wandb_offline_needs_no_network(tmp_path, monkeypatch, no_network):
     monkeypatch.setenv("WANDB_DIR", str(tmp_path))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        summary = Trainer(_cfg("logger=wandb", "logger.mode=offline"), tmp_path / "run").train()
+        # 50-step episodes: several end within the 300 steps whatever the agent does, so train/return is logged.
+        cfg = _cfg("logger=wandb", "logger.mode=offline", "env.max_steps=50")
+        summary = Trainer(cfg, tmp_path / "run").train()
     assert summary["completed"]
     assert not [w for w in caught if "W&B is off" in str(w.message)], "wandb did not start"
     no_network.close()
