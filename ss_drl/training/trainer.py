@@ -169,8 +169,8 @@ class Trainer:
     def train(self) -> dict:
         cfg, agent, collector = self.cfg, self.agent, self.collector
         total = int(cfg.trainer.total_env_steps)
-        eps = cfg.agent
-        lr_end = eps.get("lr_end")  # the DQN learner's learning-rate decay, if any
+        schedule = cfg.agent  # epsilon's schedule, and the DQN learner's learning-rate decay if lr_end is set
+        lr_end = schedule.get("lr_end")
         start = time.perf_counter()
         self.start_time = start - self.wall_before
         self.update_log = update_log = UpdateLog(agent.updates)
@@ -179,9 +179,11 @@ class Trainer:
         try:
             while collector.env_steps < total:
                 # 1. Collect: guided phase (Smart Start) at episode starts, then epsilon-greedy.
-                agent.epsilon = linear_schedule(collector.env_steps, eps.eps_start, eps.eps_end, eps.eps_decay_steps)
+                agent.epsilon = linear_schedule(
+                    collector.env_steps, schedule.eps_start, schedule.eps_end, schedule.eps_decay_steps
+                )
                 if lr_end is not None:
-                    agent.learning_rate = linear_schedule(collector.env_steps, eps.lr, lr_end, total)
+                    agent.learning_rate = linear_schedule(collector.env_steps, schedule.lr, lr_end, total)
                 batch, finished = collector.rollout(max_frames=total - collector.env_steps)
                 # 2. Count model.
                 self.counts.update(
