@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
         rollout = greedy_rollout(agent, maze, cfg.env.max_steps)
         print(f"episode {episode}: length {rollout.length}, success {int(rollout.success)} (optimal {optimal})")
     print(f"greedy accuracy: {rollout.accuracy:.3f} (fraction of states whose greedy action is on a shortest path)")
-    q = agent.q_values(torch.arange(maze.n_cells), torch.tensor([maze.goal_cell]))[0]
+    q = agent.greedy_q_values(torch.arange(maze.n_cells), torch.tensor([maze.goal_cell]))[0]
     out = args.out or args.run_dir / "greedy_policy.png"
     title = f"{cfg.experiment} seed {cfg.seed}: greedy length {rollout.length} (optimal {optimal})"
     plot_policy(maze, q.amax(dim=-1).numpy(), rollout.path, out, title)

@@ -227,6 +227,10 @@ def test_lr_end_must_be_a_positive_number(lr_end):
     assert_config_error(compose_cfg(overrides=[f"agent.lr_end={lr_end}"]), "agent.lr_end", lr_end)
 
 
+def test_eval_network_is_online_or_target():
+    assert_config_error(compose_cfg(overrides=["agent.eval_network=polyak"]), "agent.eval_network", "polyak")
+
+
 @pytest.mark.parametrize("eta", ["-0.1", "1.5"])
 def test_eta_out_of_range(eta):
     message = assert_config_error(compose_cfg(overrides=[f"smart_start.eta={eta}"]), "smart_start.eta", eta)

@@ -138,12 +138,12 @@ def test_flipped_greedy_actions_by_hand(maze, free):
 
 
 class ConstantQ:
-    """A fake agent whose Q is the same number for every state, goal and action."""
+    """A fake agent whose greedy Q is the same number for every state, goal and action."""
 
     def __init__(self, value: float):
         self.value = value
 
-    def q_values(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
+    def greedy_q_values(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         return torch.full((goals.numel(), states.numel(), 4), self.value)
 
 

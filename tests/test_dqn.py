@@ -244,3 +244,25 @@ def test_step_cost_counts_every_step_of_the_n_step_window():
     agent.update()
     # r - 1 on each of 3 steps, discounted: r_sum - (1 + 0.5 + 0.25)
     torch.testing.assert_close(seen[0], batch["next", "reward"] - 1.75)
+
+
+@pytest.mark.parametrize("eval_network", ["online", "target"])
+def test_greedy_q_values_come_from_the_evaluated_network(eval_network):
+    """``agent.eval_network``: the greedy answer (evaluation) reads the online or the Polyak-averaged target
+    network; the values collection and Smart Start read stay the online network's either way."""
+    agent = make_agent(
+        "agent.target_update=soft",
+        "agent.tau=0.5",
+        "agent.step_cost=1",
+        "agent.gamma=1",
+        f"agent.eval_network={eval_network}",
+    )
+    agent.replay_buffer.extend(random_batch(agent.maze.n_cells).unsqueeze(1).expand(64, 1).clone())
+    agent.update()  # online and target now differ
+    cells, goals = torch.arange(agent.maze.n_cells), torch.tensor([agent.maze.goal_cell, 0])
+    online = agent.q_network(cells.repeat(2), goals.repeat_interleave(cells.numel())).detach()
+    target = agent.loss.target_value_network(cells.repeat(2), goals.repeat_interleave(cells.numel()))
+    assert not torch.allclose(online, target)
+    expected = {"online": online, "target": target}[eval_network]
+    torch.testing.assert_close(agent.greedy_q_values(cells, goals), agent.env_scale(expected).view(2, -1, 4))
+    torch.testing.assert_close(agent.q_values(cells, goals), agent.env_scale(online).view(2, -1, 4))

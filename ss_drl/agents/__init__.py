@@ -36,6 +36,10 @@ class Agent(Protocol):
     def q_values(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         """(B, n, 4): Q(s||g, .) on the env's 0/1 reward scale for each goal (B,) and state (n,)."""
 
+    def greedy_q_values(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
+        """Like :meth:`q_values`, for the greedy policy the agent answers with (evaluation, ``scripts/evaluate.py``,
+        ``scripts/diagnose.py``); it may come from a different estimate than the one collection reads."""
+
     def store(self, batch: TensorDictBase) -> None:
         """Keep a collected (T, N) batch of transitions to learn from."""
 

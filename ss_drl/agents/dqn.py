@@ -204,6 +204,7 @@ class DQNAgent:
         self.train_freq, self.gradient_steps = int(cfg.train_freq), int(cfg.gradient_steps)
         self.grad_clip = float(cfg.grad_clip)
         self.goal_cell = maze.goal_cell
+        self.eval_network = cfg.get("eval_network", "online")
         self.updates = 0
 
     # --- acting ------------------------------------------------------------------------------------------------
@@ -221,6 +222,14 @@ class DQNAgent:
         """(B, n, 4): Q(s||g, .) on the env's reward scale of every state in ``states`` (n,) for each goal in
         ``goals`` (B,), in one batched pass (:func:`~ss_drl.smart_start.selection.goal_q_values`)."""
         return self.env_scale(goal_q_values(self.q_network, states, goals))
+
+    @torch.no_grad()
+    def greedy_q_values(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
+        """:meth:`q_values` of the network whose greedy policy is evaluated: the online network, or with
+        ``eval_network: target`` the target network (with Polyak updates, the online network's weights averaged
+        over the last ~1/tau updates). Collection and Smart Start read the online network either way."""
+        network = self.loss.target_value_network.network if self.eval_network == "target" else self.q_network
+        return self.env_scale(goal_q_values(network, states, goals))
 
     def value_range(self, max_steps: int) -> tuple[float, float]:
         """The values the learner's Q can take: between an episode that never reaches the goal (``max_steps``

@@ -50,6 +50,9 @@ class TabularQAgent:
         q = torch.from_numpy(self.q[states.numpy()]).to(torch.float32)
         return q.unsqueeze(0).expand(goals.numel(), -1, -1)
 
+    #: The table is the only estimate: its greedy answer is the one collection reads.
+    greedy_q_values = q_values
+
     def store(self, batch: TensorDictBase) -> None:
         self.pending.append(batch)
 

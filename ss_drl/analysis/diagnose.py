@@ -2,7 +2,7 @@
 fix"). Measurements only, no fixes:
 
 1. **Greedy accuracy by distance to G**: per bucket of BFS distance to G, the fraction of states whose greedy action
-   (argmax of ``q_values(cells, [G])``) leads one step closer to G.
+   (argmax of ``greedy_q_values(cells, [G])``) leads one step closer to G.
 2. **Q along the greedy path from S**: ``max_a Q(s||G, a)`` at each state of the greedy rollout from S against the
    optimal value on the env's 0/1 reward scale, ``gamma^(d(s) - 1)``; the mean absolute error, the first step that
    leaves a shortest path and whether the rollout loops.
@@ -12,7 +12,7 @@ fix"). Measurements only, no fixes:
    episodes.csv the share of episodes that reach G after the first success and in the last quarter, and the share of
    episodes with a Smart Start guided phase.
 
-The same numbers hold for a tabular run (its ``q_values`` knows only G, which is the only goal asked for here).
+The same numbers hold for a tabular run (its ``greedy_q_values`` knows only G, which is the only goal asked for here).
 
     python scripts/diagnose.py <run dir> [<run dir> ...] [--bucket-width 10] [--out DIR]
 
@@ -51,10 +51,10 @@ class DiagnoseError(ValueError):
 
 # --- the optimal values -------------------------------------------------------------------------------------------
 def value_gamma(agent_cfg) -> float:
-    """The discount of the optimal values ``gamma^(d - 1)`` that the agent's ``q_values`` are compared with.
+    """The discount of the optimal values ``gamma^(d - 1)`` that the agent's ``greedy_q_values`` are compared with.
 
     The agent's own gamma, except for the DQN's undiscounted cost form (gamma 1 with a step cost), whose
-    ``q_values`` map distances to the 0/1 scale with :data:`~ss_drl.agents.dqn.UNDISCOUNTED_SCALE`.
+    ``greedy_q_values`` map distances to the 0/1 scale with :data:`~ss_drl.agents.dqn.UNDISCOUNTED_SCALE`.
     """
     gamma = float(agent_cfg.gamma)
     if gamma == 1 and float(agent_cfg.get("step_cost", 0.0)) > 0:
@@ -73,7 +73,7 @@ def goal_distances(maze: Maze) -> np.ndarray:
 def max_q(agent, maze: Maze) -> np.ndarray:
     """(n_cells,) ``max_a Q(s||G, a)`` of every cell on the env's 0/1 scale, from one batched evaluation."""
     with torch.no_grad():
-        q = agent.q_values(torch.arange(maze.n_cells), torch.tensor([maze.goal_cell]))[0]
+        q = agent.greedy_q_values(torch.arange(maze.n_cells), torch.tensor([maze.goal_cell]))[0]
     return q.amax(dim=-1).double().cpu().numpy()
 
 

@@ -35,7 +35,7 @@ def greedy_policy(agent, maze: Maze, goal: int | None = None) -> torch.Tensor:
     """(n_cells,) greedy action of every cell towards ``goal`` (default G), from one batched evaluation of Q."""
     cells = torch.arange(maze.n_cells)
     goal = maze.goal_cell if goal is None else goal
-    q = agent.q_values(cells, torch.tensor([goal]))[0]  # (n_cells, A)
+    q = agent.greedy_q_values(cells, torch.tensor([goal]))[0]  # (n_cells, A)
     return q.argmax(dim=-1)
 
 
