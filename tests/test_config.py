@@ -227,8 +227,14 @@ def test_lr_end_must_be_a_positive_number(lr_end):
     assert_config_error(compose_cfg(overrides=[f"agent.lr_end={lr_end}"]), "agent.lr_end", lr_end)
 
 
-def test_eval_network_is_online_or_target():
+def test_eval_network_is_online_target_or_average():
     assert_config_error(compose_cfg(overrides=["agent.eval_network=polyak"]), "agent.eval_network", "polyak")
+
+
+@pytest.mark.parametrize("eval_tau", ["0", "1.5", "slow"])
+def test_eval_tau_must_be_a_rate_when_the_average_is_evaluated(eval_tau):
+    cfg = compose_cfg(overrides=["agent.eval_network=average", f"agent.eval_tau={eval_tau}"])
+    assert_config_error(cfg, "agent.eval_tau", eval_tau)
 
 
 @pytest.mark.parametrize("eta", ["-0.1", "1.5"])

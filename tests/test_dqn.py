@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import warnings
 
 import pytest
@@ -266,3 +267,49 @@ def test_greedy_q_values_come_from_the_evaluated_network(eval_network):
     expected = {"online": online, "target": target}[eval_network]
     torch.testing.assert_close(agent.greedy_q_values(cells, goals), agent.env_scale(expected).view(2, -1, 4))
     torch.testing.assert_close(agent.q_values(cells, goals), agent.env_scale(online).view(2, -1, 4))
+
+
+def test_evaluation_average_is_a_polyak_average_by_hand():
+    """``agent.eval_network=average``: starting from the initial weights, after every update
+    a_k = (1 - eval_tau) a_(k-1) + eval_tau o_k, with o_k the online weights after update k; the greedy answer is
+    that network's, and the target network still moves at ``tau`` (the average changes no training)."""
+    agent = make_agent("agent.target_update=soft", "agent.tau=0.5", "agent.eval_network=average", "agent.eval_tau=0.25")
+    agent.replay_buffer.extend(random_batch(agent.maze.n_cells).unsqueeze(1).expand(64, 1).clone())
+    expected = {k: v.clone() for k, v in agent.q_network.state_dict().items()}
+    target = {k: v.clone() for k, v in agent.q_network.state_dict().items()}
+    for _ in range(3):
+        agent.update()
+        online = agent.q_network.state_dict()
+        for name in expected:
+            if not name.endswith("encoder.scale"):  # constant buffers, not parameters
+                expected[name] = 0.75 * expected[name] + 0.25 * online[name]
+                target[name] = 0.5 * target[name] + 0.5 * online[name]
+    average = agent.eval_average.state_dict()
+    for name, value in expected.items():
+        torch.testing.assert_close(average[name], value)
+        torch.testing.assert_close(agent.loss.target_value_network.network.state_dict()[name], target[name])
+    assert not torch.allclose(average["advantage.weight"], agent.q_network.state_dict()["advantage.weight"])
+    cells, goals = torch.arange(agent.maze.n_cells), torch.tensor([agent.maze.goal_cell])
+    by_hand = agent.eval_average(cells, goals.expand_as(cells))
+    torch.testing.assert_close(agent.greedy_q_values(cells, goals)[0], agent.env_scale(by_hand))
+
+
+def test_checkpoint_round_trip_keeps_the_evaluation_average():
+    agent = make_agent("agent.eval_network=average", "agent.eval_tau=0.5")
+    agent.replay_buffer.extend(random_batch(agent.maze.n_cells).unsqueeze(1).expand(64, 1).clone())
+    for _ in range(2):
+        agent.update()
+    fresh = make_agent("agent.eval_network=average", "agent.eval_tau=0.5")
+    saved = io.BytesIO()  # through bytes, as a checkpoint file: an in-memory state would share the optimizer's tensors
+    torch.save(agent.state_dict(), saved)
+    saved.seek(0)
+    fresh.load_state_dict(torch.load(saved, weights_only=False))
+    cells, goals = torch.arange(agent.maze.n_cells), torch.tensor([agent.maze.goal_cell])
+    torch.testing.assert_close(fresh.greedy_q_values(cells, goals), agent.greedy_q_values(cells, goals))
+    assert not torch.allclose(fresh.greedy_q_values(cells, goals), fresh.q_values(cells, goals))
+    # The next update, on the same sample, moves both averages alike: averaging goes on from the restored weights.
+    batch = random_batch(agent.maze.n_cells, seed=1)
+    agent.replay_buffer.sample = fresh.replay_buffer.sample = lambda: batch.clone()
+    agent.update()
+    fresh.update()
+    torch.testing.assert_close(fresh.greedy_q_values(cells, goals), agent.greedy_q_values(cells, goals))

@@ -225,26 +225,23 @@ def test_learning_rate_decays_linearly_over_the_budget(tmp_path, monkeypatch, lr
     assert trainer.agent.optimizer.state_dict()["param_groups"][0]["lr"] == seen[-1]  # checkpointed with the optimizer
 
 
-def test_evaluating_the_target_network_changes_only_the_evaluations(tmp_path):
-    """``agent.eval_network=target`` reads another network at evaluation and nothing else: the run's episodes and
-    updates are the online run's, row for row, and its eval.csv holds the target network's greedy rollouts."""
+def test_the_evaluated_network_changes_only_the_evaluations(tmp_path):
+    """``agent.eval_network=target`` or ``average`` reads another network at evaluation and nothing else: the runs'
+    episodes and updates are the online run's, row for row, and each eval.csv holds its network's greedy rollouts."""
     from ss_drl.training.greedy import greedy_rollout
     from ss_drl.training.outputs import EVAL_FILE, TRAIN_FILE
-
-    common = ["+experiment=easy_small_ss_her", "trainer.total_env_steps=1500", "env.max_steps=200", *SMALL]
-    trainers = {}
-    for network in ("online", "target"):
-        trainers[network] = Trainer(compose_cfg(*common, f"agent.eval_network={network}"), tmp_path / network)
-        trainers[network].train()
-    assert episode_rows(tmp_path / "online") == episode_rows(tmp_path / "target")
 
     def without_timing(name: str, run: str) -> list[list[str]]:
         rows = [line.split(",") for line in (tmp_path / run / name).read_text().splitlines()]
         timing = [i for i, column in enumerate(rows[0]) if column in ("wall_s", "updates_per_s")]
         return [[c for i, c in enumerate(row) if i not in timing] for row in rows]
 
-    assert without_timing(TRAIN_FILE, "online") == without_timing(TRAIN_FILE, "target")
-    trainer = trainers["target"]
-    final = without_timing(EVAL_FILE, "target")[-1]
-    assert int(final[0]) == 1500  # the last evaluation is at the end of the run
-    assert int(final[2]) == greedy_rollout(trainer.agent, trainer.maze, 200).length
+    common = ["+experiment=easy_small_ss_her", "trainer.total_env_steps=1500", "env.max_steps=200", *SMALL]
+    for network in ("online", "target", "average"):
+        trainer = Trainer(compose_cfg(*common, f"agent.eval_network={network}"), tmp_path / network)
+        trainer.train()
+        assert episode_rows(tmp_path / network) == episode_rows(tmp_path / "online")
+        assert without_timing(TRAIN_FILE, network) == without_timing(TRAIN_FILE, "online")
+        final = without_timing(EVAL_FILE, network)[-1]
+        assert int(final[0]) == 1500  # the last evaluation is at the end of the run
+        assert int(final[2]) == greedy_rollout(trainer.agent, trainer.maze, 200).length

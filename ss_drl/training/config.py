@@ -119,7 +119,8 @@ def validate_config(cfg: DictConfig) -> None:
         _choice(cfg, "agent.target_update", ("hard", "soft"))
         _number(cfg, "agent.target_update_interval", low=1, integer=True)
         _number(cfg, "agent.tau", low=0, high=1, low_open=True)
-        _choice(cfg, "agent.eval_network", ("online", "target"))
+        if _choice(cfg, "agent.eval_network", ("online", "target", "average")) == "average":
+            _number(cfg, "agent.eval_tau", low=0, high=1, low_open=True)
         _number(cfg, "agent.learning_starts", low=0, integer=True)
         _number(cfg, "agent.train_freq", low=1, integer=True)
         _number(cfg, "agent.gradient_steps", low=1, integer=True)
