@@ -227,6 +227,13 @@ def test_lr_end_must_be_a_positive_number(lr_end):
     assert_config_error(compose_cfg(overrides=[f"agent.lr_end={lr_end}"]), "agent.lr_end", lr_end)
 
 
+def test_unknown_encoder():
+    message = assert_config_error(compose_cfg(overrides=["agent.encoder=pixels"]), "agent.encoder", "pixels")
+    for allowed in ("embedding", "coords", "hybrid"):
+        assert allowed in message
+    validate_config(compose_cfg(overrides=["agent.encoder=hybrid"]))
+
+
 def test_eval_network_is_online_target_or_average():
     assert_config_error(compose_cfg(overrides=["agent.eval_network=polyak"]), "agent.eval_network", "polyak")
 

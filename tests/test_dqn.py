@@ -313,3 +313,25 @@ def test_checkpoint_round_trip_keeps_the_evaluation_average():
     agent.update()
     fresh.update()
     torch.testing.assert_close(fresh.greedy_q_values(cells, goals), agent.greedy_q_values(cells, goals))
+
+
+def test_hybrid_encoder_starts_as_coords_and_learns_a_vector_per_cell():
+    # At the start the per-cell table is zero, so the hybrid code is the coords MLP's. A gradient step on a loss at
+    # some cells moves the table's rows of exactly those cells, by Adam's first step (lr times the gradient's sign).
+    from ss_drl.agents.dqn import CellEncoder
+
+    maze = load_maze("easy_small")
+    torch.manual_seed(0)
+    encoder = CellEncoder(maze, "hybrid", 8)
+    cells = torch.tensor([0, 5, 5, 17])
+    pos = torch.stack((cells // maze.width, cells % maze.width), dim=-1).float() / torch.tensor(
+        [maze.height - 1, maze.width - 1]
+    )
+    torch.testing.assert_close(encoder(cells), encoder.net(pos))
+    optimizer = torch.optim.Adam(encoder.parameters(), lr=0.01)
+    encoder(cells).sum().backward()
+    optimizer.step()
+    table = encoder.cells.weight.detach()
+    moved = sorted(torch.nonzero(table.abs().sum(dim=1)).flatten().tolist())
+    assert moved == [0, 5, 17]
+    torch.testing.assert_close(table[[0, 5, 17]], torch.full((3, 8), -0.01))

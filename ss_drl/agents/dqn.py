@@ -19,26 +19,40 @@ from ss_drl.smart_start.selection import goal_q_values
 UNDISCOUNTED_SCALE = 0.99
 
 
+ENCODERS = ("embedding", "coords", "hybrid")
+
+
 class CellEncoder(nn.Module):
-    """Embeds flat cell indices: a learned table (``embedding``) or an MLP over normalized (row, col) (``coords``)."""
+    """Embeds flat cell indices.
+
+    ``embedding``: a learned vector per cell. ``coords``: an MLP over the normalized (row, col), which generalises
+    across neighbouring cells. ``hybrid``: the coords MLP plus a learned vector per cell that starts at zero, so the
+    encoder begins as ``coords`` and each cell can then move away from its neighbours' code, as the two sides of a
+    wall must (their distances to a goal can differ by a hundred steps).
+    """
 
     def __init__(self, maze: Maze, kind: str, dim: int):
         super().__init__()
+        if kind not in ENCODERS:
+            raise ValueError(f"unknown encoder {kind!r} (allowed: {', '.join(ENCODERS)})")
         self.kind = kind
         self.width = maze.width
+        self.cells = None  # hybrid's per-cell table
         if kind == "embedding":
             self.net = nn.Embedding(maze.n_cells, dim)
-        elif kind == "coords":
-            self.register_buffer("scale", torch.tensor([max(maze.height - 1, 1), max(maze.width - 1, 1)]).float())
-            self.net = nn.Sequential(nn.Linear(2, dim), nn.ReLU(), nn.Linear(dim, dim))
-        else:
-            raise ValueError(f"unknown encoder {kind!r} (allowed: embedding, coords)")
+            return
+        self.register_buffer("scale", torch.tensor([max(maze.height - 1, 1), max(maze.width - 1, 1)]).float())
+        self.net = nn.Sequential(nn.Linear(2, dim), nn.ReLU(), nn.Linear(dim, dim))
+        if kind == "hybrid":
+            self.cells = nn.Embedding(maze.n_cells, dim)
+            nn.init.zeros_(self.cells.weight)
 
     def forward(self, cell: torch.Tensor) -> torch.Tensor:
         if self.kind == "embedding":
             return self.net(cell)
         pos = torch.stack((cell // self.width, cell % self.width), dim=-1).float() / self.scale
-        return self.net(pos)
+        code = self.net(pos)
+        return code if self.cells is None else code + self.cells(cell)
 
 
 class GoalQNetwork(nn.Module):

@@ -9,6 +9,7 @@ import numbers
 
 from omegaconf import DictConfig, ListConfig
 
+from ss_drl.agents.dqn import ENCODERS
 from ss_drl.envs.maze import PRESETS, MazeError, load_maze
 from ss_drl.her import STRATEGIES
 
@@ -106,7 +107,7 @@ def validate_config(cfg: DictConfig) -> None:
         buffer = _number(cfg, "agent.buffer_size", low=1, integer=True)
         if batch > buffer:
             raise ConfigError(f"agent.batch_size: {batch} is larger than agent.buffer_size ({buffer})")
-        _choice(cfg, "agent.encoder", ("embedding", "coords"))
+        _choice(cfg, "agent.encoder", ENCODERS)
         _number(cfg, "agent.embed_dim", low=1, integer=True)
         hidden = _get(cfg, "agent.hidden")
         if not isinstance(hidden, (list, ListConfig)) or not all(
