@@ -506,7 +506,9 @@ def test_ucb_scores_formula_and_selection_agree():
     assert int(pick[0]) == states[int(np.argmax(expected))]
 
 
-@pytest.mark.parametrize("encoder,dueling", [("embedding", True), ("embedding", False), ("coords", True), ("hybrid", True)])
+@pytest.mark.parametrize(
+    "encoder,dueling", [("embedding", True), ("embedding", False), ("coords", True), ("hybrid", True)]
+)
 @pytest.mark.parametrize("n_goals", [1, 3])
 def test_goal_q_values_match_the_network(encoder, dueling, n_goals, monkeypatch):
     # goal_q_values splits the first layer into state and goal halves, folds the dueling head and works in blocks
