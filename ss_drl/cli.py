@@ -32,23 +32,45 @@ def config_dir() -> Path:
 class ValidateBeforeRun(Callback):
     """Hydra callback (``hydra.callbacks`` in conf/config.yaml): check the config before Hydra creates the run
     directory, so a refused run leaves nothing behind. Sweeps are checked per job instead (a refused job writes
-    FAILED in its directory and the others go on)."""
+    FAILED in its directory and the others go on), except that a new sweep is refused as a whole, before any job,
+    when its directory already holds runs."""
 
     def on_run_start(self, config: DictConfig, **kwargs) -> None:
+        from ss_drl.training.checkpoint import refuse_overwrite
         from ss_drl.training.config import ConfigError, validate_config
 
-        try:
-            validate_config(config)
-        except ConfigError as exc:
-            print(f"ss-drl: config error: {exc}", file=sys.stderr)
-            sys.exit(2)
+        run_dir = _resume_dir(config) or Path(config.hydra.run.dir)
+        _refuse_on(lambda: (validate_config(config), refuse_overwrite(config, run_dir)), ConfigError)
+
+    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        from ss_drl.training.checkpoint import refuse_overwrite
+        from ss_drl.training.config import ConfigError
+
+        sweep_dir = Path(config.hydra.sweep.dir)
+        jobs = sorted(p for p in sweep_dir.glob("*") if p.is_dir()) if sweep_dir.is_dir() else []
+        _refuse_on(lambda: [refuse_overwrite(config, job, key="hydra.sweep.dir") for job in jobs], ConfigError)
+
+
+def _refuse_on(check, error: type[Exception]) -> None:
+    """Run ``check``; on ``error``, one line on stderr and exit 2, before Hydra writes anything."""
+    try:
+        check()
+    except error as exc:
+        print(f"ss-drl: config error: {exc}", file=sys.stderr)
+        sys.exit(2)
+
+
+def _resume_dir(cfg: DictConfig) -> Path | None:
+    """The run directory that ``trainer.resume=<dir>`` names, if it names one."""
+    resume = cfg.trainer.resume
+    if isinstance(resume, str) and resume not in ("", "true", "false", "auto"):
+        return Path(resume)
+    return None
 
 
 def _run_dir(cfg: DictConfig) -> Path:
-    resume = cfg.trainer.resume
-    if isinstance(resume, str) and resume not in ("", "true", "false"):
-        return Path(resume)
-    return Path(HydraConfig.get().runtime.output_dir)
+    """The run directory: ``trainer.resume=<dir>``, else Hydra's (``hydra.run.dir``, or the job's in a sweep)."""
+    return _resume_dir(cfg) or Path(HydraConfig.get().runtime.output_dir)
 
 
 def _is_multirun() -> bool:

@@ -143,6 +143,44 @@ def test_resume_without_checkpoint_is_a_clear_error(tmp_path):
     assert "Traceback" not in result.stderr
 
 
+# --- a new run never overwrites another; trainer.resume=auto continues a run if it can, else starts it ---
+def test_new_run_in_a_directory_holding_a_run_is_refused_and_touches_nothing(tmp_path):
+    """Issue: a run started without trainer.resume in an existing run's directory deleted its CSV files and then
+    overwrote its checkpoint. It is refused (exit 2, one line naming hydra.run.dir and the file) before Hydra
+    writes its .hydra/ files, and the directory is left byte for byte as it was."""
+    existing = tmp_path / "run"
+    (existing / ".hydra").mkdir(parents=True)
+    (existing / ".hydra" / "config.yaml").write_text("seed: 0\n")
+    (existing / EPISODES_FILE).write_text("episode,return\n0,1.0\n")
+    before = {p.name: p.read_bytes() for p in existing.rglob("*") if p.is_file()}
+    result = subprocess.run(_train_cmd(existing), capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert result.returncode == 2, result.stderr
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("ss-drl: config error: hydra.run.dir:"), last
+    assert str(existing) in last and EPISODES_FILE in last and "trainer.resume" in last, last
+    assert {p.name: p.read_bytes() for p in existing.rglob("*") if p.is_file()} == before
+
+
+def test_the_trainer_refuses_a_directory_holding_a_run_unless_it_resumes(tmp_path):
+    from ss_drl.training.checkpoint import refuse_overwrite, should_resume
+    from ss_drl.training.config import ConfigError
+
+    new, auto, resume = (
+        compose_cfg("+experiment=easy_small_dqn_her", f"trainer.resume={r}") for r in ("false", "auto", "true")
+    )
+    refuse_overwrite(new, tmp_path / "missing")  # no directory, or one without a run's files: a new run may start
+    (tmp_path / "cli.log").write_text("")
+    refuse_overwrite(new, tmp_path)
+    assert should_resume(auto, tmp_path) is False  # auto without a checkpoint: start the run
+    for name in (SUMMARY_FILE, EVAL_FILE, CHECKPOINT_FILE):
+        (tmp_path / name).write_text("")
+        with pytest.raises(ConfigError, match=f"^hydra.run.dir: {tmp_path} already holds a run \\(.*{name}"):
+            Trainer(new, tmp_path)
+    refuse_overwrite(auto, tmp_path)  # continuing is what resume is for
+    refuse_overwrite(resume, tmp_path)
+    assert should_resume(auto, tmp_path) is True  # auto with a checkpoint: continue it
+
+
 def test_nan_loss_stops_the_run_and_keeps_the_last_checkpoint(tmp_path, monkeypatch):
     cfg = compose_cfg(
         "+experiment=easy_small_dqn_her", "trainer.total_env_steps=2000", "trainer.checkpoint_interval=400", *SMALL

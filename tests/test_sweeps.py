@@ -87,6 +87,52 @@ def test_joblib_multirun_isolates_a_failing_job_and_plot_skips_it(tmp_path):
     check_plot_skips_failed(sweep_dir, failed=2)
 
 
+def rows(path: Path) -> list[str]:
+    return path.read_text().splitlines()
+
+
+@pytest.mark.slow
+def test_resume_auto_restarts_a_sweep_and_a_new_sweep_never_overwrites_one(tmp_path):
+    """A sweep cut short (here: seed 0 run to 200 env steps of 400, seed 1 never started) is restarted with
+    ``trainer.resume=auto`` in the same sweep directory: seed 0 continues from its checkpoint, keeping its rows,
+    and seed 1 starts. A new sweep (``trainer.resume`` false) into that directory is refused as a whole, before any
+    job, and leaves it byte for byte as it was."""
+    sweep_dir = tmp_path / "sweep"
+    budgetless = [o for o in TINY if not o.startswith("trainer.total_env_steps=")] + ["env.max_steps=50"]
+
+    def run(*overrides: str) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [sys.executable, "scripts/train.py", "-m", "+experiment=easy_small_dqn_her", *budgetless, *overrides,
+             f"hydra.sweep.dir={sweep_dir}"],
+            cwd=ROOT, capture_output=True, text=True, timeout=600,
+        )  # fmt: skip
+
+    cut = run("seed=0", "trainer.total_env_steps=200")
+    assert cut.returncode == 0, cut.stderr
+    seed0 = sweep_dir / "0_easy_small_dqn_her_seed0"
+    first_rows = rows(seed0 / EPISODES_FILE)
+    assert json.loads((seed0 / SUMMARY_FILE).read_text())["env_steps"] == 200
+
+    restarted = run("seed=0,1", "trainer.total_env_steps=400", "trainer.resume=auto")
+    assert restarted.returncode == 0, restarted.stderr
+    seed1 = sweep_dir / "1_easy_small_dqn_her_seed1"
+    for job in (seed0, seed1):
+        assert not (job / FAILED_FILE).exists(), (job / FAILED_FILE).read_text()
+        summary = json.loads((job / SUMMARY_FILE).read_text())
+        assert (summary["completed"], summary["env_steps"]) == (True, 400), job.name
+    resumed_rows = rows(seed0 / EPISODES_FILE)
+    assert resumed_rows[: len(first_rows)] == first_rows and len(resumed_rows) > len(first_rows)
+    assert rows(seed1 / EPISODES_FILE)[1].startswith("1,")  # seed 1 started anew, at its first episode
+
+    before = {p.relative_to(sweep_dir).as_posix(): p.read_bytes() for p in sweep_dir.rglob("*") if p.is_file()}
+    refused = run("seed=0,1", "trainer.total_env_steps=400")
+    assert refused.returncode == 2, refused.stderr
+    last = refused.stderr.strip().splitlines()[-1]
+    assert last.startswith("ss-drl: config error: hydra.sweep.dir:") and "trainer.resume" in last, last
+    after = {p.relative_to(sweep_dir).as_posix(): p.read_bytes() for p in sweep_dir.rglob("*") if p.is_file()}
+    assert after == before, "a refused sweep changed the sweep directory"
+
+
 @pytest.mark.slow
 def test_submitit_local_multirun_isolates_a_failing_job(tmp_path):
     """The SLURM launcher's code path (hydra-submitit-launcher: pickled jobs, one process each, results collected

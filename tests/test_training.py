@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers import ROOT, compose_cfg
+from helpers import compose_cfg
 
 from ss_drl.training.collector import MazeCollector
 from ss_drl.training.outputs import EPISODE_COLUMNS, EPISODES_FILE
@@ -63,7 +63,9 @@ def test_smart_start_without_guided_phases_leaves_the_run_unchanged(tmp_path):
     assert on != off  # ... which changes the run
 
 
-def _run_collector(maze: str, steps: int, num_envs: int = 1, eta: float = 1.0, guided_epsilon: float = 0.0):
+def _run_collector(
+    run_dir: Path, maze: str, steps: int, num_envs: int = 1, eta: float = 1.0, guided_epsilon: float = 0.0
+):
     cfg = compose_cfg(
         f"+experiment={maze}_ss_her",
         f"smart_start.eta={eta}",
@@ -73,7 +75,7 @@ def _run_collector(maze: str, steps: int, num_envs: int = 1, eta: float = 1.0, g
         f"trainer.frames_per_batch={num_envs}",
         *SMALL,
     )
-    trainer = Trainer(cfg, ROOT / "outputs" / "unused")  # nothing is written before train()
+    trainer = Trainer(cfg, run_dir)  # writes the CSV headers only; the collector runs without train()
     collector: MazeCollector = trainer.collector
     batches, episodes = [], []
     while collector.env_steps < steps:
@@ -85,8 +87,8 @@ def _run_collector(maze: str, steps: int, num_envs: int = 1, eta: float = 1.0, g
     return trainer, torch.cat(batches), episodes
 
 
-def test_counts_equal_the_transitions_taken():
-    trainer, batch, episodes = _run_collector("easy_small", 900, num_envs=3)
+def test_counts_equal_the_transitions_taken(tmp_path):
+    trainer, batch, episodes = _run_collector(tmp_path, "easy_small", 900, num_envs=3)
     s, a = batch["observation"].reshape(-1).tolist(), batch["action"].reshape(-1).tolist()
     s2 = batch["next", "observation"].reshape(-1).tolist()
     counts = trainer.counts
@@ -100,8 +102,8 @@ def test_counts_equal_the_transitions_taken():
     assert sum(e.length for e in episodes) <= len(s)
 
 
-def test_guided_phase_reaches_smart_start_state_in_planned_steps():
-    trainer, batch, episodes = _run_collector("easy_small", 3000)
+def test_guided_phase_reaches_smart_start_state_in_planned_steps(tmp_path):
+    trainer, batch, episodes = _run_collector(tmp_path, "easy_small", 3000)
     guided = [e for e in episodes if e.smart_start]
     assert episodes[0].smart_start is False  # never in the first episode
     assert all(e.smart_start for e in episodes[1:])  # eta = 1
@@ -120,13 +122,13 @@ def test_guided_phase_reaches_smart_start_state_in_planned_steps():
         start += e.length
 
 
-def test_network_acts_only_on_steps_outside_the_guided_phase(monkeypatch):
+def test_network_acts_only_on_steps_outside_the_guided_phase(tmp_path, monkeypatch):
     from ss_drl.agents.dqn import DQNAgent
 
     calls = []
     act = DQNAgent.act
     monkeypatch.setattr(DQNAgent, "act", lambda self, obs, goal: calls.append(obs.numel()) or act(self, obs, goal))
-    _, batch, episodes = _run_collector("easy_small", 3000)
+    _, batch, episodes = _run_collector(tmp_path, "easy_small", 3000)
     guided_steps = sum(e.ss_steps for e in episodes)
     assert guided_steps > 100
     running = batch.numel() - sum(e.length for e in episodes)  # steps of the unfinished last episode
@@ -134,12 +136,12 @@ def test_network_acts_only_on_steps_outside_the_guided_phase(monkeypatch):
     assert len(calls) <= batch.numel() - guided_steps
 
 
-def test_smart_start_without_guided_phases_collects_the_same_transitions():
+def test_smart_start_without_guided_phases_collects_the_same_transitions(tmp_path):
     """In three env copies: a controller that draws at every episode start but takes no guided phase (tiny eta)
     leaves the collected transitions exactly those of eta = 0 (no controller); eta = 1 changes them."""
     keys = ["observation", "desired_goal", "action", ("next", "observation"), ("next", "reward"), ("next", "done")]
-    none, batch_none, episodes_none = _run_collector("easy_small", 600, num_envs=3, eta=0.0)
-    idle, batch_idle, episodes_idle = _run_collector("easy_small", 600, num_envs=3, eta=1e-9)
+    none, batch_none, episodes_none = _run_collector(tmp_path / "none", "easy_small", 600, num_envs=3, eta=0.0)
+    idle, batch_idle, episodes_idle = _run_collector(tmp_path / "idle", "easy_small", 600, num_envs=3, eta=1e-9)
     assert none.smart_start is None and idle.smart_start is not None
     assert len(episodes_idle) > 5 and not any(e.smart_start for e in episodes_idle)
     assert idle.smart_start.decisions == 0
@@ -152,7 +154,7 @@ def test_smart_start_without_guided_phases_collects_the_same_transitions():
 
     assert ends(episodes_idle) == ends(episodes_none)
 
-    _, batch_on, episodes_on = _run_collector("easy_small", 600, num_envs=3, eta=1.0)
+    _, batch_on, episodes_on = _run_collector(tmp_path / "on", "easy_small", 600, num_envs=3, eta=1.0)
     assert any(e.smart_start for e in episodes_on)
     assert not torch.equal(batch_on["action"], batch_none["action"])
 

@@ -90,7 +90,7 @@ def validate_config(cfg: DictConfig) -> None:
     _number(cfg, "trainer.torch_threads", low=1, integer=True)
     resume = _get(cfg, "trainer.resume")
     if not isinstance(resume, (bool, str)) and resume is not None:
-        raise ConfigError(f"trainer.resume: expected true, false or a run directory, got {resume!r}")
+        raise ConfigError(f"trainer.resume: expected true, false, auto or a run directory, got {resume!r}")
     # agent
     name = _choice(cfg, "agent.name", ("dqn", "tabular"))
     _number(cfg, "agent.gamma", low=0, high=1, low_open=True)

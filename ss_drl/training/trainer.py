@@ -137,6 +137,7 @@ class Trainer:
         validate_config(cfg)
         self.cfg = cfg
         self.run_dir = Path(run_dir)
+        ckpt.refuse_overwrite(cfg, self.run_dir)
         torch.set_num_threads(int(cfg.trainer.torch_threads))
         seed_everything(int(cfg.seed))
         self.maze = make_maze(cfg.env)
