@@ -113,6 +113,8 @@ def test_resume_auto_restarts_a_sweep_and_a_new_sweep_never_overwrites_one(tmp_p
     first_rows = rows(seed0 / EPISODES_FILE)
     assert json.loads((seed0 / SUMMARY_FILE).read_text())["env_steps"] == 200
 
+    # A job stopped by SIGTERM in a sweep writes FAILED with its message; the restart replaces it.
+    (seed0 / FAILED_FILE).write_text("SIGTERM received: checkpoint written at 200 env steps\n")
     restarted = run("seed=0,1", "trainer.total_env_steps=400", "trainer.resume=auto")
     assert restarted.returncode == 0, restarted.stderr
     seed1 = sweep_dir / "1_easy_small_dqn_her_seed1"
@@ -123,6 +125,7 @@ def test_resume_auto_restarts_a_sweep_and_a_new_sweep_never_overwrites_one(tmp_p
     resumed_rows = rows(seed0 / EPISODES_FILE)
     assert resumed_rows[: len(first_rows)] == first_rows and len(resumed_rows) > len(first_rows)
     assert rows(seed1 / EPISODES_FILE)[1].startswith("1,")  # seed 1 started anew, at its first episode
+    check_plot_skips_failed(sweep_dir, failed=0)  # both jobs count as runs
 
     before = {p.relative_to(sweep_dir).as_posix(): p.read_bytes() for p in sweep_dir.rglob("*") if p.is_file()}
     refused = run("seed=0,1", "trainer.total_env_steps=400")

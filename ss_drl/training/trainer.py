@@ -37,7 +37,7 @@ from ss_drl.training.config import validate_config
 from ss_drl.training.figures import plot_visit_counts
 from ss_drl.training.greedy import greedy_rollout
 from ss_drl.training.learned import EvalRecord, learned
-from ss_drl.training.outputs import SUMMARY_FILE, RunLogger, progress_bar, write_json_atomic
+from ss_drl.training.outputs import FAILED_FILE, SUMMARY_FILE, RunLogger, progress_bar, write_json_atomic
 
 
 class TrainingInterrupted(Exception):
@@ -163,6 +163,8 @@ class Trainer:
         if ckpt.should_resume(cfg, self.run_dir):
             resume_rows = self._restore()
         self.logger = RunLogger(self.run_dir, cfg, self.resolved, resume_rows=resume_rows)
+        # A sweep job that was stopped (SIGTERM) or refused wrote FAILED; this attempt replaces it.
+        (self.run_dir / FAILED_FILE).unlink(missing_ok=True)
         self._stop_signal = None
         self.update_log: UpdateLog | None = None
 
