@@ -130,20 +130,35 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
     # --- sampling ----------------------------------------------------------------------------------------------
     def _sample(self, batch_size: int):
         data, info = super()._sample(batch_size)
+        index = torch.as_tensor(info["index"])
         n_her = round(batch_size * self.relabel_ratio)
         relabeled = torch.zeros(batch_size, dtype=torch.bool)
         relabeled[:n_her] = True
         data.set("relabeled", relabeled)  # which items carry a relabeled goal (the first n_her)
+        goal_steps = torch.zeros(batch_size, dtype=torch.int64)
+        goal_steps[n_her:] = self._real_goal_steps(data.get("desired_goal")[n_her:], index[n_her:])
         if n_her > 0:
-            self._relabel(data, info, n_her)
+            goal_steps[:n_her] = self._relabel(data, index, n_her)
+        data.set("goal_steps", goal_steps.unsqueeze(1))  # k: the goal is reached k steps on (0: not known to be)
         if self.n_step > 1:
-            self._n_step(data, torch.as_tensor(info["index"]))
+            self._n_step(data, index)
         else:
             data.set("n_steps", torch.ones(batch_size, 1, dtype=torch.int64))
         return data, info
 
-    def _relabel(self, data: TensorDictBase, info: dict, n_her: int) -> None:
-        new_goal = self.sample_goals(torch.as_tensor(info["index"])[:n_her])
+    def _real_goal_steps(self, goal: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+        """Per item, the steps k from its step t to the stored step that reached its (real) ``goal``: k = end - t + 1
+        when the episode has ended by entering the goal, 0 when it has not (it failed, or is still running)."""
+        row, env = index // self.num_envs, index % self.num_envs
+        t, end = self._absolute_row(row), self.ep_end[row, env]
+        end_slot = (end.clamp(min=0) % self.rows) * self.num_envs + env
+        reached = (end >= 0) & (self.achieved_goals(end_slot) == goal)
+        return torch.where(reached, end - t + 1, 0)
+
+    def _relabel(self, data: TensorDictBase, index: torch.Tensor, n_her: int) -> torch.Tensor:
+        """Relabel the first ``n_her`` items; returns their steps k to the new goal (0 where it was not taken from
+        step t or later of the same episode)."""
+        new_goal, goal_steps = self.goals_and_steps(index[:n_her])
         # ``data`` is a gathered copy, so its leaves are relabeled in place (cheaper than tensordict writes).
         nxt = data.get("next")
         reached = (nxt.get("observation")[:n_her] == new_goal).unsqueeze(-1)  # (n_her, 1), like the flags
@@ -154,6 +169,7 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         nxt.get("terminated")[:n_her] = reached
         nxt.get("truncated")[:n_her] = truncated
         nxt.get("done")[:n_her] = reached | truncated
+        return goal_steps
 
     def _n_step(self, data: TensorDictBase, index: torch.Tensor) -> None:
         """Turn each sampled transition into an n-step one, for its (possibly relabeled) goal.
@@ -198,6 +214,12 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
 
     def sample_goals(self, index: torch.Tensor) -> torch.Tensor:
         """New goals for the transitions in storage slots ``index`` by the buffer's strategy."""
+        return self.goals_and_steps(index)[0]
+
+    def goals_and_steps(self, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`sample_goals`, and per item the steps k from its step t to the step whose next state is the new
+        goal (``source - t + 1``), or 0 where that step is not t or later in the same episode (``episode`` goals
+        before t, ``random`` goals)."""
         row, env = index // self.num_envs, index % self.num_envs
         t = self._absolute_row(row)
         start = self.ep_start[row, env].clamp(min=self.rows_written - self.rows)  # oldest step still stored
@@ -214,7 +236,9 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
             filled = min(self.rows_written, self.rows)
             source = self.rows_written - 1 - (u * filled).long().clamp(max=filled - 1)
             env = torch.randint(self.num_envs, index.shape, generator=self.generator)
-        return self.achieved_goals((source % self.rows) * self.num_envs + env)
+        goals = self.achieved_goals((source % self.rows) * self.num_envs + env)
+        later = source >= t if self.strategy != "random" else torch.zeros_like(source, dtype=torch.bool)
+        return goals, torch.where(later, source - t + 1, 0)
 
     def achieved_goals(self, slots: torch.Tensor) -> torch.Tensor:
         """The achieved goals (next states) stored in ``slots``.

@@ -335,3 +335,58 @@ def test_hybrid_encoder_starts_as_coords_and_learns_a_vector_per_cell():
     moved = sorted(torch.nonzero(table.abs().sum(dim=1)).flatten().tolist())
     assert moved == [0, 5, 17]
     torch.testing.assert_close(table[[0, 5, 17]], torch.full((3, 8), -0.01))
+
+
+# --- the hindsight bound (agent.hindsight_bound) ---------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("step_cost", "gamma", "floors"),
+    # goal_steps 0 (not known to be reached), 1 (entered on this step), 2, 5
+    [(1.0, 1.0, [-float("inf"), 0.0, -1.0, -4.0]), (0.0, 0.9, [-float("inf"), 1.0, 0.9, 0.6561])],
+)
+def test_hindsight_floor_by_hand(step_cost, gamma, floors):
+    """Reaching the goal k steps on: k - 1 steps of -1, then 0 on entering it (shortest-path form), or gamma^(k-1)
+    with 0/1 rewards; nothing where the goal is not known to be reached."""
+    agent = make_agent(f"agent.step_cost={step_cost}", f"agent.gamma={gamma}", "agent.hindsight_bound=true")
+    floor = agent.hindsight_floor(torch.tensor([[0], [1], [2], [5]]))
+    torch.testing.assert_close(floor, torch.tensor([floors]).T)
+
+
+def capture_loss_input(agent) -> tuple[list[TensorDict], object]:
+    """Record each tensordict the agent's update hands its loss; returns the list and the loss's own forward."""
+    seen, forward = [], agent.loss.forward
+    agent.loss.forward = lambda td: seen.append(td.clone()) or forward(td)
+    return seen, forward
+
+
+def test_hindsight_bound_lifts_only_the_targets_below_it():
+    """With the bound, the loss's target is max(n-step target, floor): here the floor is -2 (k = 3) on half the
+    batch, above the network's bootstrapped targets (its value bias pushed to -10), and -inf on the other half."""
+    agent = make_agent("agent.step_cost=1", "agent.gamma=1", "agent.hindsight_bound=true", "agent.double_dqn=false")
+    with torch.no_grad():
+        agent.loss.target_value_network.network.value.bias.fill_(-10.0)
+    batch = random_batch(agent.maze.n_cells)
+    batch.set(("next", "terminated"), torch.zeros(64, 1, dtype=torch.bool))
+    goal_steps = torch.tensor([[3], [0]]).repeat(32, 1)
+    batch.set("goal_steps", goal_steps)
+    seen, forward = capture_loss_input(agent)
+    agent.replay_buffer.sample = lambda: batch.clone()
+    agent.update()
+    torch.testing.assert_close(seen[0]["target_floor"], agent.hindsight_floor(goal_steps))
+    with torch.no_grad():
+        nxt = batch["next"]
+        bootstrap = agent.loss.target_value_network(nxt["observation"], nxt["desired_goal"]).max(-1).values
+        y = nxt["reward"].squeeze(-1) - 1 + bootstrap  # reward - step cost, gamma 1, one step
+        assert bool((y < -2).all())  # every bootstrapped target lies below the floor
+        y = torch.where(goal_steps.squeeze(-1) > 0, torch.tensor(-2.0), y)
+        pred = agent.q_network(batch["observation"], batch["desired_goal"])[torch.arange(64), batch["action"]]
+    torch.testing.assert_close(forward(seen[0])["loss"], ((pred - y) ** 2).mean())
+
+
+def test_without_the_option_no_floor_reaches_the_loss():
+    agent = make_agent()
+    batch = random_batch(agent.maze.n_cells)
+    batch.set("goal_steps", torch.full((64, 1), 3))
+    seen, _ = capture_loss_input(agent)
+    agent.replay_buffer.sample = lambda: batch.clone()
+    agent.update()
+    assert "target_floor" not in seen[0].keys()

@@ -233,7 +233,7 @@ def recompute_batch() -> TensorDict:
 def test_relabeled_reward_and_flags_are_recomputed_and_the_rest_is_untouched(monkeypatch):
     buf = make_buffer(15, 3, batch_size=300, strategy="future", k=4)
     buf.extend(recompute_batch())
-    monkeypatch.setattr(buf, "sample_goals", lambda index: RELABEL[index % 3])
+    monkeypatch.setattr(buf, "goals_and_steps", lambda index: (RELABEL[index % 3], torch.zeros_like(index)))
     before = buf.storage[torch.arange(15)].clone()
     torch.manual_seed(0)
     data = buf.sample()
@@ -375,9 +375,9 @@ def test_k0_means_no_relabeling(monkeypatch):
     assert buf.relabel_ratio == 0.0
 
     def fail(index):
-        raise AssertionError("sample_goals called with k = 0")
+        raise AssertionError("goals sampled with k = 0")
 
-    monkeypatch.setattr(buf, "sample_goals", fail)
+    monkeypatch.setattr(buf, "goals_and_steps", fail)
     data = buf.sample()
     original = stored(buf, data["index"])
     for key in KEYS:
@@ -446,8 +446,9 @@ def test_sampling_reads_only_batch_items_regardless_of_buffer_size(storage_reads
             buf.sample()
         per_sample[n_stored] = list(storage_reads)
         storage_reads.clear()
-    # each sample: the batch (256) and one goal per relabeled item (205); nothing proportional to the size
-    assert per_sample[10_000] == per_sample[200_000] == [256, 205] * 3
+    # each sample: the batch (256), the episode's last next state per real-goal item (51: was the goal reached?),
+    # and one goal per relabeled item (205); nothing proportional to the size
+    assert per_sample[10_000] == per_sample[200_000] == [256, 51, 205] * 3
 
 
 # --- 8. torchrl.data.HERReplayBuffer side by side --------------------------------------------------------------------
@@ -702,3 +703,42 @@ def test_n_step_one_keeps_td0():
 def test_n_step_must_be_positive():
     with pytest.raises(ValueError, match="n_step must be >= 1"):
         HindsightReplayBuffer(64, 1, 8, n_step=0)
+
+
+# --- 10. goal_steps: how many steps on the stored episode reached each sample's goal (for the hindsight bound) --------
+def expected_goal_steps(row: int, goal: int) -> int:
+    """From the episode table above: k such that the step row + k - 1 of the same episode has next cell ``goal``
+    (the episode's steps have distinct next cells, so the step is unique), 0 if none at or after ``row``."""
+    episode = next(e for e in N_STEP_EPISODES if row in e)
+    later = [t for t in range(row, episode.stop) if N_STEP_NEXT[t] == goal]
+    return later[0] - row + 1 if later else 0
+
+
+def test_goal_steps_for_the_real_goal_by_hand():
+    """Episode A (rows 0-4) entered G = 15 at row 4: k = 5 - t. Episode B was cut by the time limit and C is still
+    running: 0, they are not known to reach G."""
+    buf = n_step_buffer("future", k=0)
+    data, info = buf.sample(return_info=True)
+    rows = torch.as_tensor(info["index"]).tolist()
+    assert set(rows) == set(range(10))
+    got = {row: int(data["goal_steps"][i, 0]) for i, row in enumerate(rows)}
+    assert got == {0: 5, 1: 4, 2: 3, 3: 2, 4: 1, 5: 0, 6: 0, 7: 0, 8: 0, 9: 0}
+
+
+@pytest.mark.parametrize("strategy", ["future", "final", "episode"])
+def test_goal_steps_for_relabeled_goals_by_hand(strategy):
+    """A relabeled goal taken from step t' >= t of the same episode is reached t' - t + 1 steps on, also when the
+    n-step window ends before it (row 5, goal 23: k = 3; row 6 of episode B, goal 23: k = 2); a goal from before t
+    ('episode') is not known to be reached: 0."""
+    buf = n_step_buffer(strategy, k=1000)
+    seen = set()
+    for _ in range(4):
+        data, info = buf.sample(return_info=True)
+        for i, row in enumerate(torch.as_tensor(info["index"]).tolist()):
+            goal = int(data["desired_goal"][i])
+            assert int(data["goal_steps"][i, 0]) == expected_goal_steps(row, goal), (row, goal)
+            seen.add((row, goal))
+    if strategy != "final":
+        assert (5, 23) in seen and expected_goal_steps(5, 23) == 3
+    if strategy == "episode":
+        assert (7, 21) in seen and expected_goal_steps(7, 21) == 0  # a goal behind the transition

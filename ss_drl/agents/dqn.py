@@ -178,6 +178,9 @@ class GoalDQNLoss(LossModule):
                 # leaves the greedy action's value as it is.
                 q_now = target_network(obs, goal)
                 target = target - self.advantage_learning * (q_now.amax(-1, keepdim=True) - q_now.gather(-1, action))
+            floor = tensordict.get("target_floor", None)
+            if floor is not None:  # the hindsight bound (DQNAgent, agent.hindsight_bound): no target below it
+                target = torch.maximum(target, floor)
             if self.value_range is not None:
                 target = target.clamp(*self.value_range)
         loss = distance_loss(pred.squeeze(-1), target.squeeze(-1), self.loss_function).mean()
@@ -217,6 +220,7 @@ class DQNAgent:
         self.learning_starts, self.batch_size = int(cfg.learning_starts), int(cfg.batch_size)
         self.train_freq, self.gradient_steps = int(cfg.train_freq), int(cfg.gradient_steps)
         self.grad_clip = float(cfg.grad_clip)
+        self.hindsight_bound = bool(cfg.get("hindsight_bound", False))
         self.goal_cell = maze.goal_cell
         self.eval_network = cfg.get("eval_network", "online")
         # eval_network: average. A Polyak average of the online network at rate eval_tau for the greedy policy alone,
@@ -290,6 +294,22 @@ class DQNAgent:
         return ((1 - gamma) * q + c) / ((1 - gamma) + c * gamma)
 
     # --- learning ----------------------------------------------------------------------------------------------
+    def _discounted_steps(self, steps: torch.Tensor) -> torch.Tensor:
+        """sum_{j<m} gamma^j for m = ``steps``: what a cost of 1 per step adds up to over m steps."""
+        gamma = self.loss.gamma
+        return steps if gamma == 1 else (1 - gamma**steps) / (1 - gamma)
+
+    def hindsight_floor(self, goal_steps: torch.Tensor) -> torch.Tensor:
+        """The hindsight bound on Q(s_t, a_t||g) for a sample whose goal the stored episode reached k = ``goal_steps``
+        steps on (k - 1 steps, then entering g), -inf where k = 0 (not known to be reached).
+
+        In a deterministic maze the same k actions reach g again, so the optimal value is at least their return,
+        ``gamma^(k-1) - step_cost * sum_{j<k} gamma^j`` on the learner's reward: ``gamma^(k-1)`` with 0/1 rewards,
+        ``-(k - 1)`` in the shortest-path form (He et al. 2017's lower bound, "Learning to play in a day")."""
+        k = goal_steps.to(torch.float32)
+        floor = self.loss.gamma ** (k - 1) - self.step_cost * self._discounted_steps(k)
+        return torch.where(goal_steps > 0, floor, torch.full_like(floor, -torch.inf))
+
     @property
     def learning_rate(self) -> float:
         return self.optimizer.param_groups[0]["lr"]
@@ -320,10 +340,10 @@ class DQNAgent:
         sample = self.replay_buffer.sample()
         if self.step_cost:
             # The learner's reward is r - step_cost on every step of the sample's m-step window.
-            steps = sample.get("n_steps").to(torch.float32)
-            gamma = self.loss.gamma
-            window = steps if gamma == 1 else (1 - gamma**steps) / (1 - gamma)  # sum_{j<m} gamma^j
+            window = self._discounted_steps(sample.get("n_steps").to(torch.float32))
             sample.set(("next", "reward"), sample.get(("next", "reward")) - self.step_cost * window)
+        if self.hindsight_bound:
+            sample.set("target_floor", self.hindsight_floor(sample.get("goal_steps")))
         out = self.loss(sample)
         loss = out.get("loss")
         self.optimizer.zero_grad(set_to_none=True)
