@@ -41,6 +41,10 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         strategy: ``future``, ``final``, ``episode`` or ``random``.
         k: relabeled goals per real one (relabel ratio k / (k + 1)); ``k = 0`` turns HER off.
         generator: RNG for goal selection (defaults to torch's global RNG).
+        n_step: steps per sampled transition (see :meth:`_n_step`); ``gamma`` discounts the rewards inside it.
+        goal_steps: give each sample ``goal_steps``, the steps k after which the stored episode reached the sample's
+            goal (0: not known to be reached), for the agent's hindsight bound. Off, the real-goal items skip the
+            read it costs.
 
     Stored keys: ``observation``, ``desired_goal``, ``action`` and ``next``: ``observation`` (the achieved goal),
     ``desired_goal``, ``reward``, ``terminated``, ``truncated``, ``done``.
@@ -56,6 +60,7 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         generator: torch.Generator | None = None,
         n_step: int = 1,
         gamma: float = 1.0,
+        goal_steps: bool = False,
     ):
         if n_step < 1:
             raise ValueError(f"n_step must be >= 1 (got {n_step})")
@@ -74,6 +79,7 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         self.k = int(k)
         self.generator = generator
         self.n_step, self.gamma = int(n_step), float(gamma)
+        self.goal_steps = bool(goal_steps)
         shape = (self.rows, self.num_envs)
         self.ep_start = torch.zeros(shape, dtype=torch.int64)  # absolute row of the slot's episode start
         self.ep_end = torch.full(shape, -1, dtype=torch.int64)  # absolute row of its last step; -1 while running
@@ -136,10 +142,11 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         relabeled[:n_her] = True
         data.set("relabeled", relabeled)  # which items carry a relabeled goal (the first n_her)
         goal_steps = torch.zeros(batch_size, dtype=torch.int64)
-        goal_steps[n_her:] = self._real_goal_steps(data.get("desired_goal")[n_her:], index[n_her:])
         if n_her > 0:
             goal_steps[:n_her] = self._relabel(data, index, n_her)
-        data.set("goal_steps", goal_steps.unsqueeze(1))  # k: the goal is reached k steps on (0: not known to be)
+        if self.goal_steps:
+            goal_steps[n_her:] = self._real_goal_steps(data.get("desired_goal")[n_her:], index[n_her:])
+            data.set("goal_steps", goal_steps.unsqueeze(1))  # k: the goal is reached k steps on (0: not known to be)
         if self.n_step > 1:
             self._n_step(data, index)
         else:
@@ -158,7 +165,7 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
     def _relabel(self, data: TensorDictBase, index: torch.Tensor, n_her: int) -> torch.Tensor:
         """Relabel the first ``n_her`` items; returns their steps k to the new goal (0 where it was not taken from
         step t or later of the same episode)."""
-        new_goal, goal_steps = self.goals_and_steps(index[:n_her])
+        new_goal, goal_steps = self.sample_goals(index[:n_her])
         # ``data`` is a gathered copy, so its leaves are relabeled in place (cheaper than tensordict writes).
         nxt = data.get("next")
         reached = (nxt.get("observation")[:n_her] == new_goal).unsqueeze(-1)  # (n_her, 1), like the flags
@@ -212,14 +219,10 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         nxt.set("done", terminated | truncated)
         data.set("n_steps", m.unsqueeze(1))
 
-    def sample_goals(self, index: torch.Tensor) -> torch.Tensor:
-        """New goals for the transitions in storage slots ``index`` by the buffer's strategy."""
-        return self.goals_and_steps(index)[0]
-
-    def goals_and_steps(self, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """:meth:`sample_goals`, and per item the steps k from its step t to the step whose next state is the new
-        goal (``source - t + 1``), or 0 where that step is not t or later in the same episode (``episode`` goals
-        before t, ``random`` goals)."""
+    def sample_goals(self, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """New goals for the transitions in storage slots ``index`` by the buffer's strategy, and per item the steps
+        k from its step t to the step whose next state is the new goal (``source - t + 1``), or 0 where that step is
+        not t or later in the same episode (``episode`` goals before t, ``random`` goals)."""
         row, env = index // self.num_envs, index % self.num_envs
         t = self._absolute_row(row)
         start = self.ep_start[row, env].clamp(min=self.rows_written - self.rows)  # oldest step still stored

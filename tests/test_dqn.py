@@ -32,7 +32,7 @@ def make_agent(*overrides: str) -> DQNAgent:
     settings = dict(PLAIN, **dict(o.split("=", 1) for o in overrides))
     cfg = compose_cfg("+experiment=easy_small_dqn_her", *(f"{k}={v}" for k, v in settings.items()))
     maze = load_maze("easy_small")
-    buffer = HindsightReplayBuffer(1000, 1, cfg.agent.batch_size, k=0)
+    buffer = HindsightReplayBuffer(1000, 1, cfg.agent.batch_size, k=0, goal_steps=cfg.agent.hindsight_bound)
     torch.manual_seed(0)
     return DQNAgent(cfg.agent, maze, buffer)
 
@@ -380,6 +380,13 @@ def test_hindsight_bound_lifts_only_the_targets_below_it():
         y = torch.where(goal_steps.squeeze(-1) > 0, torch.tensor(-2.0), y)
         pred = agent.q_network(batch["observation"], batch["desired_goal"])[torch.arange(64), batch["action"]]
     torch.testing.assert_close(forward(seen[0])["loss"], ((pred - y) ** 2).mean())
+
+
+def test_hindsight_bound_refuses_a_buffer_without_goal_steps():
+    cfg = compose_cfg("+experiment=easy_small_dqn_her", "agent.hindsight_bound=true")
+    buffer = HindsightReplayBuffer(1000, 1, cfg.agent.batch_size)
+    with pytest.raises(ValueError, match="goal_steps"):
+        DQNAgent(cfg.agent, load_maze("easy_small"), buffer)
 
 
 def test_without_the_option_no_floor_reaches_the_loss():

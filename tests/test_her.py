@@ -90,15 +90,19 @@ def make_batch(nxt, terminated=None, truncated=None, goal=GOAL, achieved: bool =
     return td
 
 
-def make_buffer(capacity, num_envs, batch_size=64, strategy="future", k=4, seed=0) -> HindsightReplayBuffer:
+def make_buffer(
+    capacity, num_envs, batch_size=64, strategy="future", k=4, seed=0, goal_steps=False
+) -> HindsightReplayBuffer:
     gen = torch.Generator().manual_seed(seed)
-    return HindsightReplayBuffer(capacity, num_envs, batch_size, strategy=strategy, k=k, generator=gen)
+    return HindsightReplayBuffer(
+        capacity, num_envs, batch_size, strategy=strategy, k=k, generator=gen, goal_steps=goal_steps
+    )
 
 
 def goal_sets(buf: HindsightReplayBuffer, slots, reps: int = 400) -> dict[int, set[int]]:
     """Slot -> set of goals that ``sample_goals`` gave over ``reps`` draws for that slot."""
     slots = torch.as_tensor(slots)
-    goals = buf.sample_goals(slots.repeat(reps)).view(reps, len(slots))
+    goals = buf.sample_goals(slots.repeat(reps))[0].view(reps, len(slots))
     return {int(s): set(goals[:, j].tolist()) for j, s in enumerate(slots)}
 
 
@@ -145,7 +149,7 @@ def test_future_sample_goals_are_exactly_the_steps_from_t_to_the_episode_end():
     buf = make_buffer(16, 1, strategy="future", seed=1)
     buf.extend(make_batch(**TWO_EPISODES))
     slots = torch.arange(8).repeat(500)
-    goals = buf.sample_goals(slots)
+    goals = buf.sample_goals(slots)[0]
     source = goals - 11  # the row whose next cell is the goal
     end = torch.where(slots <= 4, 4, 7)
     assert bool(((source >= slots) & (source <= end)).all())  # every single draw is in [t, episode end]
@@ -154,7 +158,7 @@ def test_future_sample_goals_are_exactly_the_steps_from_t_to_the_episode_end():
     # the generator drives the draw: same seed, same goals
     again = make_buffer(16, 1, strategy="future", seed=1)
     again.extend(make_batch(**TWO_EPISODES))
-    assert torch.equal(again.sample_goals(slots), goals)
+    assert torch.equal(again.sample_goals(slots)[0], goals)
 
 
 def test_future_end_to_end_sample():
@@ -172,12 +176,12 @@ def test_future_end_to_end_sample():
 def test_final_is_the_episode_last_next_state_or_the_newest_step_while_running():
     buf = make_buffer(16, 1, batch_size=500, strategy="final", seed=3)
     buf.extend(make_batch(**TWO_EPISODES))
-    assert buf.sample_goals(torch.arange(8)).tolist() == [FINAL[t] for t in range(8)]
+    assert buf.sample_goals(torch.arange(8))[0].tolist() == [FINAL[t] for t in range(8)]
 
     buf.extend(make_batch([19], terminated=[1]))  # episode B ends at row 8 (next cell 19)
-    assert buf.sample_goals(torch.arange(9)).tolist() == [15] * 5 + [19] * 4
+    assert buf.sample_goals(torch.arange(9))[0].tolist() == [15] * 5 + [19] * 4
     buf.extend(make_batch([20, 21]))  # episode C running: rows 9, 10
-    assert buf.sample_goals(torch.arange(11)).tolist() == [15] * 5 + [19] * 4 + [21] * 2
+    assert buf.sample_goals(torch.arange(11))[0].tolist() == [15] * 5 + [19] * 4 + [21] * 2
 
     torch.manual_seed(0)
     data = buf.sample()
@@ -233,7 +237,7 @@ def recompute_batch() -> TensorDict:
 def test_relabeled_reward_and_flags_are_recomputed_and_the_rest_is_untouched(monkeypatch):
     buf = make_buffer(15, 3, batch_size=300, strategy="future", k=4)
     buf.extend(recompute_batch())
-    monkeypatch.setattr(buf, "goals_and_steps", lambda index: (RELABEL[index % 3], torch.zeros_like(index)))
+    monkeypatch.setattr(buf, "sample_goals", lambda index: (RELABEL[index % 3], torch.zeros_like(index)))
     before = buf.storage[torch.arange(15)].clone()
     torch.manual_seed(0)
     data = buf.sample()
@@ -311,7 +315,7 @@ def check_all_slots(buf, strategy, ep_ids, reps=150):
     written, rows, n = buf.rows_written, buf.rows, buf.num_envs
     oldest = max(0, written - rows)
     slots = torch.arange(min(written, rows) * n)
-    goals = buf.sample_goals(slots.repeat(reps)).view(reps, -1).T.tolist()
+    goals = buf.sample_goals(slots.repeat(reps))[0].view(reps, -1).T.tolist()
     for s, drawn in enumerate(goals):
         r, e = divmod(s, n)
         t = written - 1 - (written - 1 - r) % rows  # absolute row now stored in storage row r
@@ -377,7 +381,7 @@ def test_k0_means_no_relabeling(monkeypatch):
     def fail(index):
         raise AssertionError("goals sampled with k = 0")
 
-    monkeypatch.setattr(buf, "goals_and_steps", fail)
+    monkeypatch.setattr(buf, "sample_goals", fail)
     data = buf.sample()
     original = stored(buf, data["index"])
     for key in KEYS:
@@ -427,8 +431,8 @@ def storage_reads(monkeypatch):
     return reads
 
 
-def filled_buffer(n_stored: int, num_envs: int = 4, batch_size: int = 256) -> HindsightReplayBuffer:
-    buf = make_buffer(n_stored, num_envs, batch_size=batch_size, strategy="future", k=4)
+def filled_buffer(n_stored: int, num_envs: int = 4, batch_size: int = 256, goal_steps=False) -> HindsightReplayBuffer:
+    buf = make_buffer(n_stored, num_envs, batch_size=batch_size, strategy="future", k=4, goal_steps=goal_steps)
     gen = torch.Generator().manual_seed(0)
     n_rows = n_stored // num_envs
     nxt = torch.randint(0, 500, (n_rows, num_envs), generator=gen)
@@ -446,9 +450,21 @@ def test_sampling_reads_only_batch_items_regardless_of_buffer_size(storage_reads
             buf.sample()
         per_sample[n_stored] = list(storage_reads)
         storage_reads.clear()
-    # each sample: the batch (256), the episode's last next state per real-goal item (51: was the goal reached?),
-    # and one goal per relabeled item (205); nothing proportional to the size
-    assert per_sample[10_000] == per_sample[200_000] == [256, 51, 205] * 3
+    # each sample: the batch (256) and one goal per relabeled item (205); nothing proportional to the size
+    assert per_sample[10_000] == per_sample[200_000] == [256, 205] * 3
+
+
+def test_goal_steps_read_one_episode_end_per_real_goal_item(storage_reads):
+    """With ``goal_steps`` on (the hindsight bound), each real-goal item (51 of 256) also reads its episode's last
+    next state (was G entered?); still nothing proportional to the size."""
+    per_sample = {}
+    for n_stored in (10_000, 200_000):
+        buf = filled_buffer(n_stored, goal_steps=True)
+        for _ in range(3):
+            buf.sample()
+        per_sample[n_stored] = list(storage_reads)
+        storage_reads.clear()
+    assert per_sample[10_000] == per_sample[200_000] == [256, 205, 51] * 3
 
 
 # --- 8. torchrl.data.HERReplayBuffer side by side --------------------------------------------------------------------
@@ -549,7 +565,7 @@ def test_torchrl_her_episode_cache_key_breaks_once_the_storage_wraps():
             theirs.sample()
     with pytest.raises(RuntimeError, match="ambiguous"):
         theirs.sample()
-    assert ours.sample_goals(torch.arange(6)).tolist() == [23, 23, 23, 13, 13, 13]
+    assert ours.sample_goals(torch.arange(6))[0].tolist() == [23, 23, 23, 13, 13, 13]
 
     # add() one at a time: after exactly `capacity` writes the key repeats and a stale cache is used
     theirs = torchrl_her("final", capacity=3, batch_size=300, **rf_key)
@@ -564,7 +580,7 @@ def test_torchrl_her_episode_cache_key_breaks_once_the_storage_wraps():
     # now stored: 21 (episode end), 22, 23 (running): the final goal of row 0 is 21
     t_final = dict(zip(t_data["index"].tolist(), t_data["desired_goal"].tolist()))
     assert t_final == {0: 23, 1: 23, 2: 23}  # goal crosses the episode boundary after row 0
-    assert ours.sample_goals(torch.arange(3)).tolist() == [21, 23, 23]
+    assert ours.sample_goals(torch.arange(3))[0].tolist() == [21, 23, 23]
 
 
 # --- 9. state_dict round trip ---------------------------------------------------------------------------------------
@@ -602,7 +618,7 @@ def test_state_dict_round_trip_gives_identical_samples(strategy):
     goals = []
     for b in (buf, restored):
         b.generator.manual_seed(44)
-        goals.append(b.sample_goals(torch.arange(12)))
+        goals.append(b.sample_goals(torch.arange(12))[0])
     assert torch.equal(goals[0], goals[1])
 
 
@@ -614,9 +630,17 @@ N_STEP_NEXT = [11, 12, 13, 14, 15, 21, 22, 23, 31, 32]
 N_STEP_EPISODES = [range(0, 5), range(5, 8), range(8, 10)]
 
 
-def n_step_buffer(strategy: str, k: int) -> HindsightReplayBuffer:
+def n_step_buffer(strategy: str, k: int, goal_steps: bool = False) -> HindsightReplayBuffer:
     buf = HindsightReplayBuffer(
-        64, 1, 512, strategy=strategy, k=k, generator=torch.Generator().manual_seed(3), n_step=3, gamma=0.5
+        64,
+        1,
+        512,
+        strategy=strategy,
+        k=k,
+        generator=torch.Generator().manual_seed(3),
+        n_step=3,
+        gamma=0.5,
+        goal_steps=goal_steps,
     )
     terminated = [t == 4 for t in range(10)]
     truncated = [t == 7 for t in range(10)]
@@ -717,7 +741,7 @@ def expected_goal_steps(row: int, goal: int) -> int:
 def test_goal_steps_for_the_real_goal_by_hand():
     """Episode A (rows 0-4) entered G = 15 at row 4: k = 5 - t. Episode B was cut by the time limit and C is still
     running: 0, they are not known to reach G."""
-    buf = n_step_buffer("future", k=0)
+    buf = n_step_buffer("future", k=0, goal_steps=True)
     data, info = buf.sample(return_info=True)
     rows = torch.as_tensor(info["index"]).tolist()
     assert set(rows) == set(range(10))
@@ -730,7 +754,7 @@ def test_goal_steps_for_relabeled_goals_by_hand(strategy):
     """A relabeled goal taken from step t' >= t of the same episode is reached t' - t + 1 steps on, also when the
     n-step window ends before it (row 5, goal 23: k = 3; row 6 of episode B, goal 23: k = 2); a goal from before t
     ('episode') is not known to be reached: 0."""
-    buf = n_step_buffer(strategy, k=1000)
+    buf = n_step_buffer(strategy, k=1000, goal_steps=True)
     seen = set()
     for _ in range(4):
         data, info = buf.sample(return_info=True)
@@ -742,3 +766,9 @@ def test_goal_steps_for_relabeled_goals_by_hand(strategy):
         assert (5, 23) in seen and expected_goal_steps(5, 23) == 3
     if strategy == "episode":
         assert (7, 21) in seen and expected_goal_steps(7, 21) == 0  # a goal behind the transition
+
+
+def test_no_goal_steps_unless_asked_for():
+    """Off (the default), samples carry no ``goal_steps``: nothing computes what no loss reads."""
+    data = n_step_buffer("future", k=4).sample()
+    assert "goal_steps" not in data.keys()

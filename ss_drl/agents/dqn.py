@@ -221,6 +221,8 @@ class DQNAgent:
         self.train_freq, self.gradient_steps = int(cfg.train_freq), int(cfg.gradient_steps)
         self.grad_clip = float(cfg.grad_clip)
         self.hindsight_bound = bool(cfg.get("hindsight_bound", False))
+        if self.hindsight_bound and not getattr(replay_buffer, "goal_steps", False):
+            raise ValueError("agent.hindsight_bound needs a replay buffer built with goal_steps=True")
         self.goal_cell = maze.goal_cell
         self.eval_network = cfg.get("eval_network", "online")
         # eval_network: average. A Polyak average of the online network at rate eval_tau for the greedy policy alone,

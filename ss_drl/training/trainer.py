@@ -115,6 +115,7 @@ def make_agent(cfg: DictConfig, maze: Maze, seed: int) -> Agent:
         k=cfg.her.k,
         n_step=cfg.agent.n_step,
         gamma=cfg.agent.gamma,
+        goal_steps=cfg.agent.get("hindsight_bound", False),
     )
     return DQNAgent(cfg.agent, maze, buffer, seed=seed, max_steps=cfg.env.max_steps)
 
