@@ -66,13 +66,14 @@ def test_ss_her_learns_easy_small_optimally(tmp_path):
     assert summary["final_eval_length"] == summary["optimal_length"] == 19
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_shared_ss_her_setting_learns_medium_small_by_the_rule(tmp_path, seed):
+def test_shared_ss_her_setting_learns_medium_small_by_the_rule(tmp_path):
     """Issue 12's rule on medium_small (shortest path 35) with the shared SS+HER setting and the maze's budget of
     30k env steps: the greedy path from S is within 1.05x the shortest path in at least 90% of the evaluations of
-    the last quarter (22.5k-30k), and ``learned_env_step`` is the first evaluation of that streak. (At a 15k budget
-    seed 1 flickered: 6 of its last 8 evaluations within the bound.)"""
-    cfg = compose_cfg("+experiment=medium_small_ss_her", f"seed={seed}")
+    the last quarter (22.5k-30k), and ``learned_env_step`` is the first evaluation of that streak.
+
+    One seed: each run is 5-9 min of CI's 2 cores. Seed 1 learns too (at 17.0k; the README's results), and was
+    part of this test until b78ae3f."""
+    cfg = compose_cfg("+experiment=medium_small_ss_her", "seed=0")
     budget = cfg.trainer.total_env_steps
     assert budget == 30000
     summary = Trainer(cfg, tmp_path).train()
