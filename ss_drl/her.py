@@ -45,6 +45,9 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         goal_steps: give each sample ``goal_steps``, the steps k after which the stored episode reached the sample's
             goal (0: not known to be reached), for the agent's hindsight bound. Off, the real-goal items skip the
             read it costs.
+        window_states: give each sample ``window_observation`` (B, n_step): the state after each step of its n-step
+            window (entries past the window's m steps repeat later stored states; ``n_steps`` says how many count),
+            for the agent's ``n_step_max`` targets.
 
     Stored keys: ``observation``, ``desired_goal``, ``action`` and ``next``: ``observation`` (the achieved goal),
     ``desired_goal``, ``reward``, ``terminated``, ``truncated``, ``done``.
@@ -61,6 +64,7 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         n_step: int = 1,
         gamma: float = 1.0,
         goal_steps: bool = False,
+        window_states: bool = False,
     ):
         if n_step < 1:
             raise ValueError(f"n_step must be >= 1 (got {n_step})")
@@ -80,6 +84,7 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         self.generator = generator
         self.n_step, self.gamma = int(n_step), float(gamma)
         self.goal_steps = bool(goal_steps)
+        self.window_states = bool(window_states)
         shape = (self.rows, self.num_envs)
         self.ep_start = torch.zeros(shape, dtype=torch.int64)  # absolute row of the slot's episode start
         self.ep_end = torch.full(shape, -1, dtype=torch.int64)  # absolute row of its last step; -1 while running
@@ -151,6 +156,8 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
             self._n_step(data, index)
         else:
             data.set("n_steps", torch.ones(batch_size, 1, dtype=torch.int64))
+            if self.window_states:
+                data.set("window_observation", data.get(("next", "observation")).unsqueeze(1))
         return data, info
 
     def _real_goal_steps(self, goal: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
@@ -187,7 +194,8 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         which the env's reward is for G too). The sample then holds ``next.reward`` = sum_j gamma^j r_j,
         ``next.observation`` = the state after the window's last step, ``next.terminated``/``done`` = the goal was
         reached in the window, ``next.truncated`` = the window ended at the episode's time limit, and ``n_steps`` = m
-        (the target bootstraps with gamma^m).
+        (the target bootstraps with gamma^m); with ``window_states``, ``window_observation`` = the state after each of
+        the n steps (past m: later stored states of the same episode, or its last one).
         """
         n = self.n_step
         row, env = index // self.num_envs, index % self.num_envs
@@ -218,6 +226,8 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         nxt.set("truncated", truncated)
         nxt.set("done", terminated | truncated)
         data.set("n_steps", m.unsqueeze(1))
+        if self.window_states:
+            data.set("window_observation", achieved)
 
     def sample_goals(self, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """New goals for the transitions in storage slots ``index`` by the buffer's strategy, and per item the steps

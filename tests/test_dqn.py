@@ -32,7 +32,14 @@ def make_agent(*overrides: str) -> DQNAgent:
     settings = dict(PLAIN, **dict(o.split("=", 1) for o in overrides))
     cfg = compose_cfg("+experiment=easy_small_dqn_her", *(f"{k}={v}" for k, v in settings.items()))
     maze = load_maze("easy_small")
-    buffer = HindsightReplayBuffer(1000, 1, cfg.agent.batch_size, k=0, goal_steps=cfg.agent.hindsight_bound)
+    buffer = HindsightReplayBuffer(
+        1000,
+        1,
+        cfg.agent.batch_size,
+        k=0,
+        goal_steps=cfg.agent.hindsight_bound,
+        window_states=cfg.agent.n_step_max,
+    )
     torch.manual_seed(0)
     return DQNAgent(cfg.agent, maze, buffer)
 
@@ -387,6 +394,85 @@ def test_hindsight_bound_refuses_a_buffer_without_goal_steps():
     buffer = HindsightReplayBuffer(1000, 1, cfg.agent.batch_size)
     with pytest.raises(ValueError, match="goal_steps"):
         DQNAgent(cfg.agent, load_maze("easy_small"), buffer)
+
+
+# --- n_step_max: the largest of the window's k-step targets --------------------------------------------------------
+def test_n_step_max_refuses_a_buffer_without_window_states():
+    cfg = compose_cfg("+experiment=easy_small_dqn_her", "agent.n_step_max=true")
+    buffer = HindsightReplayBuffer(1000, 1, cfg.agent.batch_size)
+    with pytest.raises(ValueError, match="window_states"):
+        DQNAgent(cfg.agent, load_maze("easy_small"), buffer)
+
+
+def capture_targets(monkeypatch) -> list[torch.Tensor]:
+    """Record the target each loss computation compares its prediction with."""
+    import ss_drl.agents.dqn as dqn
+
+    targets, distance = [], dqn.distance_loss
+    monkeypatch.setattr(
+        dqn, "distance_loss", lambda pred, target, kind: targets.append(target) or distance(pred, target, kind)
+    )
+    return targets
+
+
+#: Target-network values V(s) per cell for the hand computations (every action the same, so max = V).
+V = {1: -10.0, 2: -4.0, 3: -9.0, 4: -5.0, 5: 0.0, 6: -1.0, 7: -20.0}
+
+
+def n_step_max_batch() -> TensorDict:
+    """Four samples of 3-step windows (shortest-path form, gamma 1: the learner's reward over k steps is -k, +1 on
+    entering the goal), written out:
+
+    a. m = 3, no goal: window 1, 2, 3. Targets: k=1 -1 + V(1) = -11, k=2 -2 + V(2) = -6, k=3 -3 + V(3) = -12 -> -6.
+    b. m = 3, the goal entered at step 3 (terminal): k=3 gives -2, above k=1 (-11) and k=2 (-6) -> -2.
+    c. m = 1, cut by the episode's end: -1 + V(4) = -6. The entries past m (cell 5, V 0) do not count -> -6.
+    d. m = 2, no goal: window 6, 7. k=1 -1 + V(6) = -2; k=2 -2 + V(7) = -22; the third entry (7) does not count -> -2.
+    """
+    window = torch.tensor([[1, 2, 3], [1, 2, 3], [4, 5, 5], [6, 7, 7]])
+    m = torch.tensor([[3], [3], [1], [2]])
+    last = window.gather(1, m - 1).squeeze(1)
+    terminated = torch.tensor([[False], [True], [False], [False]])
+    return TensorDict(
+        {
+            "observation": torch.tensor([8, 8, 9, 9]),
+            "desired_goal": torch.full((4,), 30),
+            "action": torch.tensor([0, 1, 2, 3]),
+            "relabeled": torch.zeros(4, dtype=torch.bool),
+            "n_steps": m,
+            "window_observation": window,
+            "next": {
+                "observation": last,
+                "desired_goal": torch.full((4,), 30),
+                "reward": terminated.float(),  # the env's: 1 on entering the goal
+                "terminated": terminated,
+                "truncated": torch.tensor([[False], [False], [True], [False]]),
+                "done": torch.tensor([[False], [True], [True], [False]]),
+            },
+        },
+        batch_size=[4],
+    )
+
+
+@pytest.mark.parametrize("n_step_max", [True, False])
+def test_n_step_max_target_by_hand(monkeypatch, n_step_max):
+    """With the option the target is the largest k-step target of each window (-6, -2, -6, -2 above); without it,
+    the m-step target alone (-12, -2, -6, -22)."""
+    agent = make_agent(
+        "agent.step_cost=1",
+        "agent.gamma=1",
+        "agent.n_step=3",
+        f"agent.n_step_max={n_step_max}",
+        "agent.double_dqn=false",
+    )
+    table = torch.zeros(agent.maze.n_cells)
+    for cell, value in V.items():
+        table[cell] = value
+    agent.loss.target_value_network = lambda obs, goal: table[obs].unsqueeze(-1).expand(*obs.shape, 4)
+    agent.replay_buffer.sample = n_step_max_batch
+    targets = capture_targets(monkeypatch)
+    agent.update()
+    expected = [-6.0, -2.0, -6.0, -2.0] if n_step_max else [-12.0, -2.0, -6.0, -22.0]
+    assert targets[0].tolist() == expected
 
 
 def test_without_the_option_no_floor_reaches_the_loss():

@@ -630,7 +630,9 @@ N_STEP_NEXT = [11, 12, 13, 14, 15, 21, 22, 23, 31, 32]
 N_STEP_EPISODES = [range(0, 5), range(5, 8), range(8, 10)]
 
 
-def n_step_buffer(strategy: str, k: int, goal_steps: bool = False) -> HindsightReplayBuffer:
+def n_step_buffer(
+    strategy: str, k: int, goal_steps: bool = False, window_states: bool = False
+) -> HindsightReplayBuffer:
     buf = HindsightReplayBuffer(
         64,
         1,
@@ -641,6 +643,7 @@ def n_step_buffer(strategy: str, k: int, goal_steps: bool = False) -> HindsightR
         n_step=3,
         gamma=0.5,
         goal_steps=goal_steps,
+        window_states=window_states,
     )
     terminated = [t == 4 for t in range(10)]
     truncated = [t == 7 for t in range(10)]
@@ -768,7 +771,38 @@ def test_goal_steps_for_relabeled_goals_by_hand(strategy):
         assert (7, 21) in seen and expected_goal_steps(7, 21) == 0  # a goal behind the transition
 
 
-def test_no_goal_steps_unless_asked_for():
-    """Off (the default), samples carry no ``goal_steps``: nothing computes what no loss reads."""
+def test_no_goal_steps_or_window_states_unless_asked_for():
+    """Off (the default), samples carry no ``goal_steps`` and no ``window_observation``: nothing computes what no
+    loss reads."""
     data = n_step_buffer("future", k=4).sample()
     assert "goal_steps" not in data.keys()
+    assert "window_observation" not in data.keys()
+
+
+# --- 11. window states: the state after each step of the n-step window (for the n_step_max targets) ---------------
+@pytest.mark.parametrize("strategy", ["future", "final", "episode"])
+def test_window_states_by_hand(strategy):
+    """The first m entries of ``window_observation`` are the next cells of rows t..t+m-1 (m from the same walk as
+    the n-step targets), also for a relabeled goal entered inside the window (row 5, goal 22: m = 2) and a window cut
+    by the episode's end (row 7: m = 1)."""
+    buf = n_step_buffer(strategy, k=3, window_states=True)
+    seen = set()
+    for _ in range(4):
+        data, info = buf.sample(return_info=True)
+        assert data["window_observation"].shape == (512, 3)
+        for i, row in enumerate(torch.as_tensor(info["index"]).tolist()):
+            goal = int(data["desired_goal"][i])
+            m = expected_n_step(row, goal)[4]
+            assert int(data["n_steps"][i, 0]) == m
+            assert data["window_observation"][i, :m].tolist() == N_STEP_NEXT[row : row + m], (row, goal)
+            seen.add((row, goal, m))
+    assert (7, 15, 1) in seen  # cut by the time limit after one step
+    if strategy != "final":
+        assert (5, 22, 2) in seen  # a relabeled goal entered at the window's second step
+
+
+def test_window_states_with_one_step_targets_are_the_next_states():
+    buf = HindsightReplayBuffer(64, 1, 32, k=1, generator=torch.Generator().manual_seed(0), window_states=True)
+    buf.extend(make_batch(**TWO_EPISODES))
+    data = buf.sample()
+    assert torch.equal(data["window_observation"], data["next", "observation"].unsqueeze(1))

@@ -121,6 +121,9 @@ class GoalDQNLoss(LossModule):
     (the HER buffer samples uniformly).
 
     The sample's ``n_steps`` (m, from the HER buffer) sets the bootstrap discount gamma^m: m = 1 is TD(0).
+    A sample that holds ``window_observation`` (the state after each of its window's steps) and ``window_reward``
+    (the learner's return over its first k steps, k = 1..n-1) gets the largest of its k-step targets, k = 1..m
+    (``DQNAgent``, ``agent.n_step_max``).
     ``value_range = (low, high)`` clips the targets to the values a policy can have (a bootstrapped value outside it
     is the network's error, and with gamma near 1 such errors can feed on themselves until Q diverges).
 
@@ -157,6 +160,14 @@ class GoalDQNLoss(LossModule):
             warnings.filterwarnings("ignore", message="No target network updater", category=UserWarning)
             self.target_value_network = _BoundTarget(q_network, self.target_value_network_params)
 
+    def _bootstrap(self, obs: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+        """(..., 1) the target network's value of (obs, goal): of the online network's greedy action (double DQN)
+        or its own max."""
+        q = self.target_value_network(obs, goal)
+        if self.double_dqn:
+            return q.gather(-1, self.value_network(obs, goal).argmax(-1, keepdim=True))
+        return q.amax(-1, keepdim=True)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         online, target_network = self.value_network, self.target_value_network
         obs, goal = tensordict.get("observation"), tensordict.get("desired_goal")
@@ -164,14 +175,27 @@ class GoalDQNLoss(LossModule):
         pred = online(obs, goal).gather(-1, action)
         with torch.no_grad():
             next_obs, next_goal = tensordict.get(("next", "observation")), tensordict.get(("next", "desired_goal"))
-            next_q = target_network(next_obs, next_goal)
-            if self.double_dqn:
-                next_value = next_q.gather(-1, online(next_obs, next_goal).argmax(-1, keepdim=True))
+            window_reward = tensordict.get("window_reward", None)  # set by the agent with n_step_max only
+            window = None if window_reward is None else tensordict.get("window_observation")
+            inner = None if window is None or window.shape[-1] < 2 else window[:, :-1]  # after k = 1..n-1 steps
+            if inner is not None:  # one pass over the next states and the window's inner states
+                states = torch.cat((next_obs.unsqueeze(1), inner), dim=1)
+                values = self._bootstrap(states.flatten(), next_goal.unsqueeze(1).expand_as(states).flatten())
+                values = values.view(states.shape)
+                next_value, inner_value = values[:, :1], values[:, 1:]
             else:
-                next_value = next_q.amax(-1, keepdim=True)
+                next_value = self._bootstrap(next_obs, next_goal)
             not_terminal = (~tensordict.get(("next", "terminated"))).to(next_value.dtype)
-            discount = self.gamma ** tensordict.get("n_steps").to(next_value.dtype)  # gamma^m after m steps
+            m = tensordict.get("n_steps")
+            discount = self.gamma ** m.to(next_value.dtype)  # gamma^m after m steps
             target = tensordict.get(("next", "reward")) + discount * not_terminal * next_value
+            if inner is not None:
+                # n_step_max: each k-step target, k < m (no goal entered, no episode end before step m), is also a
+                # lower bound on Q*(s_t, a_t||g) in a deterministic maze; the target is the largest of them.
+                k = torch.arange(1, window.shape[-1], device=m.device)
+                shorter = window_reward + self.gamma ** k.to(inner_value.dtype) * inner_value
+                shorter = torch.where(k < m, shorter, torch.full_like(shorter, -torch.inf))
+                target = torch.maximum(target, shorter.amax(-1, keepdim=True))
             if self.advantage_learning:
                 # Advantage learning (Bellemare et al., 2016): the taken action's target drops by alpha times its
                 # gap to the best action, which widens every action gap by 1 / (1 - alpha) at the fixed point and
@@ -223,6 +247,12 @@ class DQNAgent:
         self.hindsight_bound = bool(cfg.get("hindsight_bound", False))
         if self.hindsight_bound and not getattr(replay_buffer, "goal_steps", False):
             raise ValueError("agent.hindsight_bound needs a replay buffer built with goal_steps=True")
+        self.n_step_max = bool(cfg.get("n_step_max", False))
+        if self.n_step_max and not getattr(replay_buffer, "window_states", False):
+            raise ValueError("agent.n_step_max needs a replay buffer built with window_states=True")
+        # The learner's return over the first k = 1..n-1 steps of a window that enters no goal before its end.
+        k = torch.arange(1, int(cfg.get("n_step", 1)), dtype=torch.float32)
+        self._window_reward = -self.step_cost * self._discounted_steps(k)
         self.goal_cell = maze.goal_cell
         self.eval_network = cfg.get("eval_network", "online")
         # eval_network: average. A Polyak average of the online network at rate eval_tau for the greedy policy alone,
@@ -346,6 +376,8 @@ class DQNAgent:
             sample.set(("next", "reward"), sample.get(("next", "reward")) - self.step_cost * window)
         if self.hindsight_bound:
             sample.set("target_floor", self.hindsight_floor(sample.get("goal_steps")))
+        if self.n_step_max:
+            sample.set("window_reward", self._window_reward.expand(sample.batch_size[0], -1))
         out = self.loss(sample)
         loss = out.get("loss")
         self.optimizer.zero_grad(set_to_none=True)

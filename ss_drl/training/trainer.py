@@ -116,6 +116,7 @@ def make_agent(cfg: DictConfig, maze: Maze, seed: int) -> Agent:
         n_step=cfg.agent.n_step,
         gamma=cfg.agent.gamma,
         goal_steps=cfg.agent.get("hindsight_bound", False),
+        window_states=cfg.agent.get("n_step_max", False),
     )
     return DQNAgent(cfg.agent, maze, buffer, seed=seed, max_steps=cfg.env.max_steps)
 
