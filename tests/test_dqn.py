@@ -25,6 +25,8 @@ PLAIN = {  # TD(0) on 0/1 rewards with hard target copies: the setting the hand 
     "agent.n_step": "1",
     "agent.clip_targets": "false",
     "agent.target_update": "hard",
+    "agent.hindsight_bound": "false",
+    "agent.n_step_max": "false",
 }
 
 
@@ -398,7 +400,7 @@ def test_hindsight_bound_refuses_a_buffer_without_goal_steps():
 
 # --- n_step_max: the largest of the window's k-step targets --------------------------------------------------------
 def test_n_step_max_refuses_a_buffer_without_window_states():
-    cfg = compose_cfg("+experiment=easy_small_dqn_her", "agent.n_step_max=true")
+    cfg = compose_cfg("+experiment=easy_small_dqn_her", "agent.hindsight_bound=false", "agent.n_step_max=true")
     buffer = HindsightReplayBuffer(1000, 1, cfg.agent.batch_size)
     with pytest.raises(ValueError, match="window_states"):
         DQNAgent(cfg.agent, load_maze("easy_small"), buffer)

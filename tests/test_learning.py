@@ -95,7 +95,17 @@ def _offline_goal_reaching(k: int) -> float:
         "agent.encoder=coords",
     )
     maze = load_maze("easy_small")
-    buffer = HindsightReplayBuffer(20_000, 1, cfg.agent.batch_size, "future", k)
+    buffer = HindsightReplayBuffer(
+        20_000,
+        1,
+        cfg.agent.batch_size,
+        "future",
+        k,
+        n_step=cfg.agent.n_step,
+        gamma=cfg.agent.gamma,
+        goal_steps=cfg.agent.hindsight_bound,
+        window_states=cfg.agent.n_step_max,
+    )
     agent = DQNAgent(cfg.agent, maze, buffer)
     agent.epsilon = 1.0
     collector = MazeCollector(BatchedMazeEnv(maze, 1, max_steps=100), agent, None, 3000)
