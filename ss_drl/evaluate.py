@@ -15,13 +15,16 @@ from ss_drl.training.outputs import CHECKPOINT_FILE
 
 def load_agent(run_dir: Path):
     """The trained agent and maze of a run directory, from its checkpoint."""
+    from ss_drl.smart_start import CountModel
     from ss_drl.training import checkpoint as ckpt
     from ss_drl.training.trainer import make_agent, make_maze
 
     state = ckpt.load(run_dir)
     cfg = OmegaConf.create(state["config"])
     maze = make_maze(cfg.env)
-    agent = make_agent(cfg, maze, int(cfg.seed))
+    counts = CountModel(maze.n_cells)
+    counts.load_state_dict(state["counts"])
+    agent = make_agent(cfg, maze, int(cfg.seed), counts)
     agent.load_state_dict(state["agent"])
     return agent, maze, cfg
 

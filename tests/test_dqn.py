@@ -17,6 +17,7 @@ from torchrl.objectives import DQNLoss
 from ss_drl.agents.dqn import DQNAgent
 from ss_drl.envs.maze import load_maze
 from ss_drl.her import HindsightReplayBuffer
+from ss_drl.smart_start import CountModel
 
 #: The plain DQN these tests compute by hand (0/1 rewards, gamma < 1, TD(0), no clipping); each test adds its own.
 PLAIN = {  # TD(0) on 0/1 rewards with hard target copies: the setting the hand computations below are written for
@@ -30,7 +31,7 @@ PLAIN = {  # TD(0) on 0/1 rewards with hard target copies: the setting the hand 
 }
 
 
-def make_agent(*overrides: str) -> DQNAgent:
+def make_agent(*overrides: str, counts: CountModel | None = None) -> DQNAgent:
     settings = dict(PLAIN, **dict(o.split("=", 1) for o in overrides))
     cfg = compose_cfg("+experiment=easy_small_dqn_her", *(f"{k}={v}" for k, v in settings.items()))
     maze = load_maze("easy_small")
@@ -43,7 +44,7 @@ def make_agent(*overrides: str) -> DQNAgent:
         window_states=cfg.agent.n_step_max,
     )
     torch.manual_seed(0)
-    return DQNAgent(cfg.agent, maze, buffer)
+    return DQNAgent(cfg.agent, maze, buffer, counts=counts)
 
 
 def random_batch(n_cells: int, size: int = 64, seed: int = 0) -> TensorDict:
@@ -396,6 +397,55 @@ def test_hindsight_bound_refuses_a_buffer_without_goal_steps():
     buffer = HindsightReplayBuffer(1000, 1, cfg.agent.batch_size)
     with pytest.raises(ValueError, match="goal_steps"):
         DQNAgent(cfg.agent, load_maze("easy_small"), buffer)
+
+
+# --- the distance ceiling (agent.distance_ceiling) -------------------------------------------------------------------
+def test_distance_ceiling_caps_only_the_targets_for_g_above_it():
+    """With an empty count model no wall is known, so the fewest steps from (s, a) to entering G that cannot be
+    ruled out are 1 + min(|s' - G|_1, |s - G|_1), s' the grid neighbour a points to (the move may yet bump): the
+    target for G is min(n-step target, -(steps - 1)); a sample for another goal keeps its target. The network's
+    value bias is pushed to +10 so that every bootstrapped target lies above the ceiling."""
+    maze = load_maze("easy_small")
+    counts = CountModel(maze.n_cells)
+    agent = make_agent(
+        "agent.step_cost=1", "agent.gamma=1", "agent.distance_ceiling=true", "agent.double_dqn=false", counts=counts
+    )
+    with torch.no_grad():
+        agent.loss.target_value_network.network.value.bias.fill_(10.0)
+    batch = random_batch(maze.n_cells)
+    batch.set(("next", "terminated"), torch.zeros(64, 1, dtype=torch.bool))
+    for_g = torch.arange(64) % 2 == 0
+    batch.set("desired_goal", torch.where(for_g, maze.goal_cell, batch["desired_goal"]))
+    batch.set(("next", "desired_goal"), batch["desired_goal"])
+    seen, forward = capture_loss_input(agent)
+    agent.replay_buffer.sample = lambda: batch.clone()
+    agent.update()
+
+    def manhattan(cell):
+        (r, c), (gr, gc) = divmod(cell, maze.width), maze.goal
+        return abs(r - gr) + abs(c - gc)
+
+    expected = []
+    for s, a, g in zip(batch["observation"].tolist(), batch["action"].tolist(), for_g.tolist()):
+        r, c = divmod(s, maze.width)
+        dr, dc = ((0, 1), (1, 0), (0, -1), (-1, 0))[a]
+        inside = 0 <= r + dr < maze.height and 0 <= c + dc < maze.width
+        nearer = min(manhattan(s), manhattan((r + dr) * maze.width + c + dc)) if inside else manhattan(s)
+        expected.append(-float(nearer) if g else float("inf"))  # 1 + nearer steps: -(1 + nearer - 1)
+    torch.testing.assert_close(seen[0]["target_ceiling"], torch.tensor(expected).unsqueeze(-1))
+    with torch.no_grad():
+        nxt = batch["next"]
+        bootstrap = agent.loss.target_value_network(nxt["observation"], nxt["desired_goal"]).max(-1).values
+        y = nxt["reward"].squeeze(-1) - 1 + bootstrap  # reward - step cost, gamma 1, one step (no value clip)
+        assert bool((y[for_g] > torch.tensor(expected)[for_g]).all())  # every target for G lies above its ceiling
+        y = torch.minimum(y, torch.tensor(expected))
+        pred = agent.q_network(batch["observation"], batch["desired_goal"])[torch.arange(64), batch["action"]]
+    torch.testing.assert_close(forward(seen[0])["loss"], ((pred - y) ** 2).mean())
+
+
+def test_distance_ceiling_refuses_an_agent_without_the_count_model():
+    with pytest.raises(ValueError, match="count model"):
+        make_agent("agent.distance_ceiling=true")
 
 
 # --- n_step_max: the largest of the window's k-step targets --------------------------------------------------------

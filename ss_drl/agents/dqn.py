@@ -13,6 +13,8 @@ from torchrl.objectives.utils import distance_loss
 
 from ss_drl.envs.maze import Maze
 from ss_drl.ops import epsilon_greedy
+from ss_drl.smart_start.ceiling import DistanceCeiling
+from ss_drl.smart_start.counts import CountModel
 from ss_drl.smart_start.selection import goal_q_values
 
 #: The discount that puts the undiscounted cost form's distances on the 0/1 scale (:meth:`DQNAgent.env_scale`).
@@ -123,7 +125,8 @@ class GoalDQNLoss(LossModule):
     The sample's ``n_steps`` (m, from the HER buffer) sets the bootstrap discount gamma^m: m = 1 is TD(0).
     A sample that holds ``window_observation`` (the state after each of its window's steps) and ``window_reward``
     (the learner's return over its first k steps, k = 1..n-1) gets the largest of its k-step targets, k = 1..m
-    (``DQNAgent``, ``agent.n_step_max``).
+    (``DQNAgent``, ``agent.n_step_max``). ``target_floor`` and ``target_ceiling``, where the sample holds them, bound
+    the target from below and above (``agent.hindsight_bound``, ``agent.distance_ceiling``).
     ``value_range = (low, high)`` clips the targets to the values a policy can have (a bootstrapped value outside it
     is the network's error, and with gamma near 1 such errors can feed on themselves until Q diverges).
 
@@ -205,6 +208,9 @@ class GoalDQNLoss(LossModule):
             floor = tensordict.get("target_floor", None)
             if floor is not None:  # the hindsight bound (DQNAgent, agent.hindsight_bound): no target below it
                 target = torch.maximum(target, floor)
+            ceiling = tensordict.get("target_ceiling", None)
+            if ceiling is not None:  # the distance ceiling (DQNAgent, agent.distance_ceiling): no target above it
+                target = torch.minimum(target, ceiling)
             if self.value_range is not None:
                 target = target.clamp(*self.value_range)
         loss = distance_loss(pred.squeeze(-1), target.squeeze(-1), self.loss_function).mean()
@@ -219,7 +225,9 @@ class DQNAgent:
     ``LossModule`` (:class:`GoalDQNLoss`), the target network moved by ``HardUpdate``/``SoftUpdate``.
     """
 
-    def __init__(self, cfg, maze: Maze, replay_buffer, seed: int = 0, max_steps: int = 1000):
+    def __init__(
+        self, cfg, maze: Maze, replay_buffer, seed: int = 0, max_steps: int = 1000, counts: CountModel | None = None
+    ):
         self.cfg = cfg
         self.maze = maze
         self.replay_buffer = replay_buffer
@@ -254,6 +262,12 @@ class DQNAgent:
         k = torch.arange(1, int(cfg.get("n_step", 1)), dtype=torch.float32)
         self._window_reward = -self.step_cost * self._discounted_steps(k)
         self.goal_cell = maze.goal_cell
+        # distance_ceiling: G's targets capped by the fewest steps to G the count model cannot rule out.
+        self.distance_ceiling: DistanceCeiling | None = None
+        if cfg.get("distance_ceiling", False):
+            if counts is None:
+                raise ValueError("agent.distance_ceiling needs the count model (DQNAgent(..., counts=...))")
+            self.distance_ceiling = DistanceCeiling(counts, maze.height, maze.width, maze.goal_cell)
         self.eval_network = cfg.get("eval_network", "online")
         # eval_network: average. A Polyak average of the online network at rate eval_tau for the greedy policy alone,
         # average <- (1 - eval_tau) average + eval_tau online after every optimizer step, from the initial weights
@@ -342,6 +356,15 @@ class DQNAgent:
         floor = self.loss.gamma ** (k - 1) - self.step_cost * self._discounted_steps(k)
         return torch.where(goal_steps > 0, floor, torch.full_like(floor, -torch.inf))
 
+    def ceiling(self, sample: TensorDictBase) -> torch.Tensor:
+        """(B, 1) the distance ceiling on each sample's target: for the real goal G, the value of entering it after
+        the fewest steps from (s_t, a_t) that the count model cannot rule out (:class:`DistanceCeiling`), the same
+        function of k as the hindsight bound (``-(k - 1)`` in the shortest-path form); +inf for other goals."""
+        sa = sample.get("observation") * self.distance_ceiling.counts.n_actions + sample.get("action")
+        cap = self.hindsight_floor(self.distance_ceiling.steps()[sa])
+        real = sample.get("desired_goal") == self.goal_cell
+        return torch.where(real, cap, torch.full_like(cap, torch.inf)).reshape(-1, 1)
+
     @property
     def learning_rate(self) -> float:
         return self.optimizer.param_groups[0]["lr"]
@@ -376,6 +399,8 @@ class DQNAgent:
             sample.set(("next", "reward"), sample.get(("next", "reward")) - self.step_cost * window)
         if self.hindsight_bound:
             sample.set("target_floor", self.hindsight_floor(sample.get("goal_steps")))
+        if self.distance_ceiling is not None:
+            sample.set("target_ceiling", self.ceiling(sample))
         if self.n_step_max:
             sample.set("window_reward", self._window_reward.expand(sample.batch_size[0], -1))
         out = self.loss(sample)

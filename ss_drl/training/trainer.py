@@ -98,7 +98,7 @@ def make_maze(env_cfg) -> Maze:
     return load_maze(env_cfg.layout if env_cfg.layout else env_cfg.preset)
 
 
-def make_agent(cfg: DictConfig, maze: Maze, seed: int) -> Agent:
+def make_agent(cfg: DictConfig, maze: Maze, seed: int, counts: CountModel | None = None) -> Agent:
     """The learner named by ``agent.name``: ``dqn`` (with its HER replay buffer) or ``tabular``."""
     if cfg.agent.name == "tabular":
         from ss_drl.agents.tabular import TabularQAgent
@@ -118,7 +118,7 @@ def make_agent(cfg: DictConfig, maze: Maze, seed: int) -> Agent:
         goal_steps=cfg.agent.get("hindsight_bound", False),
         window_states=cfg.agent.get("n_step_max", False),
     )
-    return DQNAgent(cfg.agent, maze, buffer, seed=seed, max_steps=cfg.env.max_steps)
+    return DQNAgent(cfg.agent, maze, buffer, seed=seed, max_steps=cfg.env.max_steps, counts=counts)
 
 
 def make_smart_start(cfg: DictConfig, maze: Maze, counts: CountModel, seed: int) -> SmartStart | None:
@@ -145,8 +145,8 @@ class Trainer:
         self.maze = make_maze(cfg.env)
         self.optimal_length = self.maze.shortest_path_length
         self.env = BatchedMazeEnv(self.maze, num_envs=cfg.env.num_envs, max_steps=cfg.env.max_steps)
-        self.agent = make_agent(cfg, self.maze, int(cfg.seed))
         self.counts = CountModel(self.maze.n_cells)
+        self.agent = make_agent(cfg, self.maze, int(cfg.seed), self.counts)
         self.smart_start = make_smart_start(cfg, self.maze, self.counts, int(cfg.seed))
         self.collector = MazeCollector(self.env, self.agent, self.smart_start, cfg.trainer.frames_per_batch)
         self.episodes = 0
