@@ -19,7 +19,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.slow
-def test_evaluate_reproduces_the_final_greedy_evaluation(tmp_path):
+@pytest.mark.parametrize("options", [[], ["agent.distance_ceiling=true"]], ids=["default", "distance_ceiling"])
+def test_evaluate_reproduces_the_final_greedy_evaluation(tmp_path, options):
+    """Also for an agent that reads the count model (agent.distance_ceiling): the checkpoint's counts are loaded."""
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose(
             "config",
@@ -28,10 +30,14 @@ def test_evaluate_reproduces_the_final_greedy_evaluation(tmp_path):
                 "trainer.total_env_steps=600",
                 "agent.learning_starts=100",
                 "agent.batch_size=16",
+                *options,
             ],
         )
-    summary = Trainer(cfg, tmp_path).train()
+    trainer = Trainer(cfg, tmp_path)
+    summary = trainer.train()
     agent, maze, _ = load_agent(tmp_path)
+    if options:
+        torch.testing.assert_close(agent.distance_ceiling.steps(), trainer.agent.distance_ceiling.steps())
     rollout = greedy_rollout(agent, maze, 1000)
     assert rollout.length == summary["final_eval_length"]
     assert round(rollout.accuracy, 4) == summary["final_greedy_accuracy"]
