@@ -17,10 +17,11 @@ from benchmarks.env import bench_env
 from benchmarks.her import bench_her
 from benchmarks.planner import bench_planner
 from benchmarks.train import bench_train, sb3_available, sb3_version
+from benchmarks.update import bench_update
 
-SECTIONS = ("env", "train", "planner", "her")
+SECTIONS = ("env", "train", "planner", "her", "update")
 #: Default repeats per section (``--repeats`` overrides them all). The train section is the slow one.
-DEFAULT_REPEATS = {"env": 5, "train": 3, "planner": 15, "her": 5}
+DEFAULT_REPEATS = {"env": 5, "train": 3, "planner": 15, "her": 5, "update": 7}
 QUICK_REPEATS = 2
 #: ``--quick``: every section at small sizes (keyword arguments of its ``bench_*`` function), a smoke run.
 QUICK_SIZES: dict[str, dict] = {
@@ -28,8 +29,15 @@ QUICK_SIZES: dict[str, dict] = {
     "train": dict(steps=200, max_steps=100, learning_starts=100),
     "planner": dict(mazes=("easy_small", "random29")),
     "her": dict(sizes=(1_000, 10_000), samples=50),
+    "update": dict(maze="easy_small", transitions=2_000, updates=10),
 }
-BENCHES = {"env": bench_env, "train": bench_train, "planner": bench_planner, "her": bench_her}
+BENCHES = {
+    "env": bench_env,
+    "train": bench_train,
+    "planner": bench_planner,
+    "her": bench_her,
+    "update": bench_update,
+}
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,4 +1,5 @@
-"""Throughput benchmarks: `python scripts/benchmark.py [--section env|train|planner|her|all] [--repeats R] [--quick]`.
+"""Throughput benchmarks: `python scripts/benchmark.py [--section SECTION|all] [--repeats R] [--quick]`, SECTION one of
+env, train, planner, her, update.
 
 All logic lives in the checkout's top-level :mod:`benchmarks` package (not installed with ss-drl).
 """

@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks import cli, her, train  # noqa: E402
+from benchmarks import cli, her, train, update  # noqa: E402
 from benchmarks.common import compose_config  # noqa: E402
 
 needs_sb3 = pytest.mark.skipif(not train.sb3_available(), reason="stable-baselines3 is not installed (bench extra)")
@@ -169,6 +169,61 @@ def test_her_section_quick_times_the_stated_samples(monkeypatch):
     ratio = bullet(text, rf"^- ratio {max(sizes):,} / {min(sizes):,}: (\S+) ")[1]
     assert_quotient(ratio, rows[-1]["sample ms (median)"], rows[0]["sample ms (median)"])
     assert f"median of {samples} samples, median of {repeats} repeats" in text
+
+
+def test_update_section_quick_times_the_stated_updates(monkeypatch):
+    """Every setting of the section is an agent with its options on, and each is timed for the same number of
+    updates (5 warm-up ones first); the ratios are the printed medians' quotients."""
+    from ss_drl.agents.dqn import DQNAgent
+
+    calls = []
+    real_update = DQNAgent.update
+
+    def counted(self):
+        on = (self.hindsight_bound, self.n_step_max, self.distance_ceiling is not None)
+        calls.append(on)
+        return real_update(self)
+
+    monkeypatch.setattr(DQNAgent, "update", counted)
+    repeats, sizes = 2, cli.QUICK_SIZES["update"]
+    text = run_main(["--section", "update", "--quick", "--repeats", str(repeats)])
+    (rows,) = tables(text)
+    assert [row["setting"] for row in rows] == ["J", "L", "LM", "LMC"]
+    expected_on = [(False, False, False), (True, False, False), (True, True, False), (True, True, True)]
+    for on, row in zip(expected_on, rows):
+        assert calls.count(on) == 5 + repeats * sizes["updates"], row
+        assert row["bounds on"] == (
+            ", ".join(n for n, o in zip(("hindsight_bound", "n_step_max", "distance_ceiling"), on) if o) or "none"
+        )
+        assert number(row["ms per update"]) > 0
+        assert_quotient(row["vs J"], row["ms per update"], rows[0]["ms per update"])
+    assert len(calls) == 4 * (5 + repeats * sizes["updates"])
+    assert f"on {sizes['maze']} ({sizes['transitions']:,} random-walk transitions stored" in text
+
+
+def test_random_walk_batch_moves_as_the_maze_does():
+    from ss_drl.envs.maze import load_maze
+
+    maze = load_maze("easy_small")
+    table = maze.transition_table()
+    batch = update.random_walk_batch(maze, 3_000, episode_len=100, seed=1)  # reaches G once, cut 29 times
+    obs, act, nxt = batch["observation"].view(-1), batch["action"].view(-1), batch["next", "observation"].view(-1)
+    term, trunc = batch["next", "terminated"].view(-1), batch["next", "truncated"].view(-1)
+    torch.testing.assert_close(nxt, torch.from_numpy(table[obs.numpy(), act.numpy()]))
+    assert torch.equal(term, nxt == maze.goal_cell)
+    assert torch.equal(batch["next", "reward"].view(-1), term.float())
+    assert torch.equal(batch["next", "done"].view(-1), term | trunc)
+    done = (term | trunc).tolist()
+    assert obs[0] == maze.start_cell
+    length = 0
+    for i in range(len(done)):
+        length += 1
+        assert length <= 100 and (trunc[i] == (length == 100 and not term[i]))
+        if i + 1 < len(done):
+            assert obs[i + 1] == (maze.start_cell if done[i] else nxt[i])
+        if done[i]:
+            length = 0
+    assert term.any() and trunc.any()
 
 
 @pytest.fixture(scope="module")
