@@ -535,3 +535,70 @@ def test_without_the_option_no_floor_reaches_the_loss():
     agent.replay_buffer.sample = lambda: batch.clone()
     agent.update()
     assert "target_floor" not in seen[0].keys()
+
+
+# --- the distance floor (agent.distance_floor) ----------------------------------------------------------------------
+def test_distance_floor_lifts_the_targets_for_g_and_joins_the_hindsight_bound():
+    """The count model has seen one route into G on easy_small; for a sample whose goal is G and whose (s, a) lies
+    on it, the floor is -(steps - 1) with steps = 1 + the route's remaining length, and the target is the largest of
+    the n-step target (pushed far down by a value bias of -100), the hindsight bound and the floor. Samples for
+    other goals, or off the route, keep the hindsight bound alone."""
+    maze = load_maze("easy_small")
+    counts = CountModel(maze.n_cells)
+    table = maze.transition_table()
+    dist = maze.distances_from(maze.goal).reshape(-1)
+    route = [maze.start_cell]  # a shortest path S ... G, down the true distances
+    while route[-1] != maze.goal_cell:
+        route.append(min(table[route[-1]], key=lambda c: dist[c]))
+    route = [int(c) for c in route]
+    moves = [next(a for a in range(4) if table[s, a] == s2) for s, s2 in zip(route[:-1], route[1:])]
+    counts.update(torch.tensor(route[:-1]), torch.tensor(moves), torch.tensor(route[1:]), torch.zeros(len(moves)))
+    agent = make_agent(
+        "agent.step_cost=1",
+        "agent.gamma=1",
+        "agent.hindsight_bound=true",
+        "agent.distance_floor=true",
+        "agent.double_dqn=false",
+        counts=counts,
+    )
+    with torch.no_grad():
+        agent.loss.target_value_network.network.value.bias.fill_(-100.0)
+    batch = random_batch(maze.n_cells)
+    batch.set(("next", "terminated"), torch.zeros(64, 1, dtype=torch.bool))
+    on_route = torch.arange(64) % 2 == 0  # the even samples: (route[i], moves[i]) for the real goal G
+    i = torch.arange(64) % len(moves)
+    batch.set("observation", torch.where(on_route, torch.tensor(route[:-1])[i], batch["observation"]))
+    batch.set("action", torch.where(on_route, torch.tensor(moves)[i], batch["action"]))
+    for_g = on_route | (torch.arange(64) % 4 == 1)  # and a quarter of the batch for G off the route
+    batch.set("desired_goal", torch.where(for_g, maze.goal_cell, batch["desired_goal"]))
+    batch.set(("next", "desired_goal"), batch["desired_goal"])
+    goal_steps = torch.where(torch.arange(64) % 8 == 0, 3, 0).unsqueeze(-1)  # the hindsight bound, k = 3
+    batch.set("goal_steps", goal_steps)
+    seen, forward = capture_loss_input(agent)
+    agent.replay_buffer.sample = lambda: batch.clone()
+    agent.update()
+    remaining = {(s, a): len(moves) - j for j, (s, a) in enumerate(zip(route, moves))}  # steps to entering G
+    expected = []
+    for j, (s, a) in enumerate(zip(batch["observation"].tolist(), batch["action"].tolist())):
+        bound = -2.0 if goal_steps[j] > 0 else -float("inf")
+        if for_g[j] and (s, a) in remaining:  # every even sample, and any random one that lands on the route
+            bound = max(bound, -(remaining[s, a] - 1.0))
+        expected.append(bound)
+    expected = torch.tensor(expected)
+    torch.testing.assert_close(seen[0]["target_floor"], expected.unsqueeze(-1))
+    assert bool(torch.isfinite(expected[on_route]).all()) and not bool(
+        torch.isfinite(expected[~for_g & (goal_steps.squeeze(-1) == 0)]).any()
+    )
+    with torch.no_grad():
+        nxt = batch["next"]
+        bootstrap = agent.loss.target_value_network(nxt["observation"], nxt["desired_goal"]).max(-1).values
+        y = nxt["reward"].squeeze(-1) - 1 + bootstrap
+        assert bool((y < expected[torch.isfinite(expected)].min()).all())  # every n-step target lies below the floors
+        y = torch.maximum(y, expected)
+        pred = agent.q_network(batch["observation"], batch["desired_goal"])[torch.arange(64), batch["action"]]
+    torch.testing.assert_close(forward(seen[0])["loss"], ((pred - y) ** 2).mean())
+
+
+def test_distance_floor_refuses_an_agent_without_the_count_model():
+    with pytest.raises(ValueError, match="count model"):
+        make_agent("agent.distance_floor=true")

@@ -19,9 +19,14 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("options", [[], ["agent.distance_ceiling=true"]], ids=["default", "distance_ceiling"])
+@pytest.mark.parametrize(
+    "options",
+    [[], ["agent.distance_ceiling=true"], ["agent.distance_floor=true"]],
+    ids=["default", "distance_ceiling", "distance_floor"],
+)
 def test_evaluate_reproduces_the_final_greedy_evaluation(tmp_path, options):
-    """Also for an agent that reads the count model (agent.distance_ceiling): the checkpoint's counts are loaded."""
+    """Also for an agent that reads the count model (agent.distance_ceiling, agent.distance_floor): the checkpoint's
+    counts are loaded."""
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose(
             "config",
@@ -36,8 +41,9 @@ def test_evaluate_reproduces_the_final_greedy_evaluation(tmp_path, options):
     trainer = Trainer(cfg, tmp_path)
     summary = trainer.train()
     agent, maze, _ = load_agent(tmp_path)
-    if options:
-        torch.testing.assert_close(agent.distance_ceiling.steps(), trainer.agent.distance_ceiling.steps())
+    for bound in ("distance_ceiling", "distance_floor"):
+        if getattr(trainer.agent, bound) is not None:
+            torch.testing.assert_close(getattr(agent, bound).steps(), getattr(trainer.agent, bound).steps())
     rollout = greedy_rollout(agent, maze, 1000)
     assert rollout.length == summary["final_eval_length"]
     assert round(rollout.accuracy, 4) == summary["final_greedy_accuracy"]

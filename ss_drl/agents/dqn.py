@@ -11,9 +11,9 @@ from torch import nn
 from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 from torchrl.objectives.utils import distance_loss
 
-from ss_drl.envs.maze import Maze
+from ss_drl.envs.maze import ACTIONS, Maze
 from ss_drl.ops import epsilon_greedy
-from ss_drl.smart_start.ceiling import DistanceCeiling
+from ss_drl.smart_start.ceiling import DistanceCeiling, DistanceFloor
 from ss_drl.smart_start.counts import CountModel
 from ss_drl.smart_start.selection import goal_q_values
 
@@ -264,10 +264,15 @@ class DQNAgent:
         self.goal_cell = maze.goal_cell
         # distance_ceiling: G's targets capped by the fewest steps to G the count model cannot rule out.
         self.distance_ceiling: DistanceCeiling | None = None
+        # distance_floor: G's targets raised to the value of the fewest steps to G along the count model's transitions.
+        self.distance_floor: DistanceFloor | None = None
+        for key in ("distance_ceiling", "distance_floor"):
+            if cfg.get(key, False) and counts is None:
+                raise ValueError(f"agent.{key} needs the count model (DQNAgent(..., counts=...))")
         if cfg.get("distance_ceiling", False):
-            if counts is None:
-                raise ValueError("agent.distance_ceiling needs the count model (DQNAgent(..., counts=...))")
             self.distance_ceiling = DistanceCeiling(counts, maze.height, maze.width, maze.goal_cell)
+        if cfg.get("distance_floor", False):
+            self.distance_floor = DistanceFloor(counts, maze.goal_cell)
         self.eval_network = cfg.get("eval_network", "online")
         # eval_network: average. A Polyak average of the online network at rate eval_tau for the greedy policy alone,
         # average <- (1 - eval_tau) average + eval_tau online after every optimizer step, from the initial weights
@@ -356,14 +361,26 @@ class DQNAgent:
         floor = self.loss.gamma ** (k - 1) - self.step_cost * self._discounted_steps(k)
         return torch.where(goal_steps > 0, floor, torch.full_like(floor, -torch.inf))
 
+    def _bound_for_g(self, sample: TensorDictBase, steps: torch.Tensor, other: float) -> torch.Tensor:
+        """(B, 1) for samples whose goal is the real G, the value of entering it k = ``steps[s_t * A + a_t]`` steps
+        on, the same function of k as the hindsight bound (``-(k - 1)`` in the shortest-path form; -inf for k = 0);
+        ``other`` for every other goal."""
+        sa = sample.get("observation") * len(ACTIONS) + sample.get("action")
+        bound = self.hindsight_floor(steps[sa])
+        real = sample.get("desired_goal") == self.goal_cell
+        return torch.where(real, bound, torch.full_like(bound, other)).reshape(-1, 1)
+
     def ceiling(self, sample: TensorDictBase) -> torch.Tensor:
         """(B, 1) the distance ceiling on each sample's target: for the real goal G, the value of entering it after
-        the fewest steps from (s_t, a_t) that the count model cannot rule out (:class:`DistanceCeiling`), the same
-        function of k as the hindsight bound (``-(k - 1)`` in the shortest-path form); +inf for other goals."""
-        sa = sample.get("observation") * self.distance_ceiling.counts.n_actions + sample.get("action")
-        cap = self.hindsight_floor(self.distance_ceiling.steps()[sa])
-        real = sample.get("desired_goal") == self.goal_cell
-        return torch.where(real, cap, torch.full_like(cap, torch.inf)).reshape(-1, 1)
+        the fewest steps from (s_t, a_t) that the count model cannot rule out (:class:`DistanceCeiling`); +inf for
+        other goals."""
+        return self._bound_for_g(sample, self.distance_ceiling.steps(), torch.inf)
+
+    def floor(self, sample: TensorDictBase) -> torch.Tensor:
+        """(B, 1) the distance floor on each sample's target: for the real goal G, the value of entering it after the
+        fewest steps from (s_t, a_t) along transitions the count model has observed (:class:`DistanceFloor`); -inf
+        for other goals and where no observed route leads to G."""
+        return self._bound_for_g(sample, self.distance_floor.steps(), -torch.inf)
 
     @property
     def learning_rate(self) -> float:
@@ -399,6 +416,11 @@ class DQNAgent:
             sample.set(("next", "reward"), sample.get(("next", "reward")) - self.step_cost * window)
         if self.hindsight_bound:
             sample.set("target_floor", self.hindsight_floor(sample.get("goal_steps")))
+        if self.distance_floor is not None:
+            floor = self.floor(sample)
+            if self.hindsight_bound:
+                floor = torch.maximum(floor, sample.get("target_floor"))
+            sample.set("target_floor", floor)
         if self.distance_ceiling is not None:
             sample.set("target_ceiling", self.ceiling(sample))
         if self.n_step_max:

@@ -1,4 +1,5 @@
-"""The distance ceiling: the fewest steps to a goal that the count model cannot rule out.
+"""Distance bounds from the count model: the ceiling (the fewest steps to a goal it cannot rule out) and the floor
+(the fewest steps along transitions it has observed).
 
 In a grid maze a wall is a cell, and a move into it is seen as a bump: a tried (s, a) that stayed at s although
 the cell it points to lies inside the grid. The *optimistic maze* has as walls only the cells the count model has
@@ -11,8 +12,14 @@ successors (the neighbour, or s itself if the neighbour turns out to be a wall).
 steps, so the value of reaching the goal in that many steps is an upper bound on Q*(s, a||g)
 (``DQNAgent``, ``agent.distance_ceiling``): the counterpart from above of the hindsight bound from below.
 
-It is a deterministic function of the count model's observed keys, so a resumed run computes what an
-uninterrupted one does. The distances are recomputed (one BFS) only when a new wall is seen.
+The *floor* (:class:`DistanceFloor`) is the other side: the fewest steps from s via a to entering the goal along
+transitions the count model has observed, ``1 + d_known(s')``. Those steps are walked again by repeating their
+actions, so in a deterministic maze they are an upper bound on the true steps, and their value a lower bound on
+Q*(s, a||g) (``agent.distance_floor``): the hindsight bound with every stored episode stitched into one graph.
+
+Both are deterministic functions of the count model's observed keys, so a resumed run computes what an
+uninterrupted one does. The ceiling's distances are recomputed (one BFS) only when a new wall is seen, the floor's
+when a new transition is.
 """
 
 from __future__ import annotations
@@ -24,6 +31,7 @@ import torch
 
 from ss_drl.envs.maze import ACTIONS
 from ss_drl.smart_start.counts import CountModel
+from ss_drl.smart_start.planner import Planner, _bfs
 
 
 class DistanceCeiling:
@@ -101,4 +109,63 @@ class DistanceCeiling:
         known = keys.numpy()
         nearer[known // n] = dist[known % n]  # tried (s, a): the successor observed (one, in a deterministic maze)
         self._keys, self._steps = keys, torch.from_numpy(1 + nearer).to(torch.float32)
+        return self._steps
+
+
+class DistanceFloor:
+    """Upper bounds on the steps to ``goal`` from every (s, a), along the transitions a :class:`CountModel` has seen.
+
+    ``steps()[s * A + a]`` is ``1 + d_known(s')`` for a tried (s, a) with observed successor s', d_known the fewest
+    observed transitions from s' into the goal (0 at the goal), and 0 ("no bound") where (s, a) is untried or s'
+    has no observed route to the goal. The breadth-first search is the planner's, on the count model's cached
+    structure (its predecessor lists), backwards from the goal.
+
+    Args:
+        counts: the count model (read, never written); its maze must be deterministic.
+        goal: the goal cell.
+    """
+
+    def __init__(self, counts: CountModel, goal: int):
+        self.counts, self.goal = counts, int(goal)
+        self._keys: torch.Tensor | None = None  # the key array the steps below were computed from
+        self._steps: torch.Tensor | None = None
+
+    def distances(self) -> np.ndarray:
+        """(S,) d_known: the fewest observed transitions from each cell into the goal; 0 at the goal, -1 where no
+        observed route leads there."""
+        st = self.counts.structure()
+        if not st.deterministic:
+            raise ValueError(
+                "agent.distance_floor needs a deterministic maze: some (s, a) was seen to lead to two cells"
+            )
+        into_state, preds = Planner._predecessors(st)
+        n_v = st.states.numel()
+        dist = [-1] * (n_v + 1)
+        dist[n_v] = 0  # the dummy slot (unvisited cells) is never reached
+        slot = st.derived["slot"][self.goal]
+        if slot < n_v:
+            dist[slot] = 0  # the goal is terminal and normally never departed from, so it has no slot
+        front = [y for y in into_state.get(self.goal, ()) if dist[y] < 0]
+        for y in front:
+            dist[y] = 1
+        _bfs(front, dist, preds, n_v + 1)
+        full = np.full(self.counts.n_states, -1, dtype=np.int64)
+        full[st.states.numpy()] = dist[:n_v]
+        full[self.goal] = 0
+        return full
+
+    def steps(self) -> torch.Tensor:
+        """(S * A,) float32, flat ``s * A + a``: the steps from s via a to entering the goal along observed
+        transitions, ``1 + d_known(s')``; 0 where there is no such route."""
+        keys = self.counts.keys
+        if self._steps is not None and keys is self._keys:
+            return self._steps
+        n = self.counts.n_states
+        steps = np.zeros(n * self.counts.n_actions, dtype=np.int64)
+        if keys.numel():
+            dist = self.distances()
+            known = keys.numpy()
+            d = dist[known % n]
+            steps[known[d >= 0] // n] = 1 + d[d >= 0]
+        self._keys, self._steps = keys, torch.from_numpy(steps).to(torch.float32)
         return self._steps

@@ -133,6 +133,7 @@ def validate_config(cfg: DictConfig) -> None:
         _boolean(cfg, "agent.hindsight_bound")
         _boolean(cfg, "agent.n_step_max")
         _boolean(cfg, "agent.distance_ceiling")
+        _boolean(cfg, "agent.distance_floor")
         if _get(cfg, "agent.gamma") == 1 and _get(cfg, "agent.step_cost") == 0:
             raise ConfigError("agent.gamma: 1 needs agent.step_cost > 0 (undiscounted 0/1 rewards make every value 1)")
     # HER
