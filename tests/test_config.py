@@ -222,6 +222,13 @@ def test_undiscounted_needs_a_step_cost():
         validate_config(compose_cfg(overrides=["agent.gamma=1", "agent.step_cost=0"]))
 
 
+def test_bound_all_actions_needs_a_distance_bound():
+    with pytest.raises(ConfigError, match=r"^agent.bound_all_actions: needs agent.distance_floor or"):
+        validate_config(compose_cfg(overrides=["agent.bound_all_actions=true"]))
+    validate_config(compose_cfg(overrides=["agent.bound_all_actions=true", "agent.distance_floor=true"]))
+    assert_config_error(compose_cfg(overrides=["agent.bound_all_actions=yes"]), "agent.bound_all_actions", "yes")
+
+
 @pytest.mark.parametrize("lr_end", ["0", "-0.001", "fast"])
 def test_lr_end_must_be_a_positive_number(lr_end):
     assert_config_error(compose_cfg(overrides=[f"agent.lr_end={lr_end}"]), "agent.lr_end", lr_end)

@@ -602,3 +602,118 @@ def test_distance_floor_lifts_the_targets_for_g_and_joins_the_hindsight_bound():
 def test_distance_floor_refuses_an_agent_without_the_count_model():
     with pytest.raises(ValueError, match="count model"):
         make_agent("agent.distance_floor=true")
+
+
+# --- the bounds on every action (agent.bound_all_actions) -----------------------------------------------------------
+def route_counts(maze) -> tuple[CountModel, list[int], list[int]]:
+    """A count model that has seen one shortest route S ... G on ``maze`` and nothing else; the route's cells and
+    moves."""
+    counts = CountModel(maze.n_cells)
+    table = maze.transition_table()
+    dist = maze.distances_from(maze.goal).reshape(-1)
+    route = [maze.start_cell]
+    while route[-1] != maze.goal_cell:
+        route.append(min(table[route[-1]], key=lambda c: dist[c]))
+    route = [int(c) for c in route]
+    moves = [next(a for a in range(4) if table[s, a] == s2) for s, s2 in zip(route[:-1], route[1:])]
+    counts.update(torch.tensor(route[:-1]), torch.tensor(moves), torch.tensor(route[1:]), torch.zeros(len(moves)))
+    return counts, route, moves
+
+
+@pytest.mark.parametrize("bias", [10.0, -100.0], ids=["above_the_ceilings", "below_the_floors"])
+def test_bound_all_actions_holds_every_action_of_a_state_for_g_by_hand(bias):
+    """The count model has seen one route into G on easy_small and no wall. For a sample for G at route cell s_j:
+    the floor of the route's move is -(steps left - 1) and of the three untried moves -inf (no observed route); the
+    ceiling of the route's move is -|s_{j+1} - G|_1 and of an untried move -min(|s - G|_1, |s' - G|_1) (s' the
+    neighbour it points to, s itself if it leaves the grid; no wall is known). The loss is the TD loss plus, per
+    sample, the squared distance of each action but the taken one to its prediction clipped into its bounds: with
+    the online network's value bias at +10 every prediction lies above its ceiling, at -100 below every finite
+    floor. Samples for other goals add nothing."""
+    maze = load_maze("easy_small")
+    counts, route, moves = route_counts(maze)
+    agent = make_agent(
+        "agent.step_cost=1",
+        "agent.gamma=1",
+        "agent.distance_floor=true",
+        "agent.distance_ceiling=true",
+        "agent.bound_all_actions=true",
+        "agent.double_dqn=false",
+        counts=counts,
+    )
+    with torch.no_grad():
+        agent.q_network.value.bias.fill_(bias)
+    batch = random_batch(maze.n_cells)
+    batch.set(("next", "terminated"), torch.zeros(64, 1, dtype=torch.bool))
+    i = torch.arange(64) % len(moves)
+    batch.set("observation", torch.tensor(route[:-1])[i])
+    batch.set("action", torch.randint(4, (64,), generator=torch.Generator().manual_seed(1)))
+    for_g = torch.arange(64) % 4 != 3
+    batch.set("desired_goal", torch.where(for_g, maze.goal_cell, batch["desired_goal"]))
+    batch.set(("next", "desired_goal"), batch["desired_goal"])
+    seen, forward = capture_loss_input(agent)
+    agent.replay_buffer.sample = lambda: batch.clone()
+    agent.update()
+
+    def manhattan(cell):
+        (r, c), (gr, gc) = divmod(cell, maze.width), maze.goal
+        return abs(r - gr) + abs(c - gc)
+
+    inf = float("inf")
+    floors, ceilings = [], []
+    for j, g in zip(i.tolist(), for_g.tolist()):
+        s = route[j]
+        r, c = divmod(s, maze.width)
+        floor, ceiling = [], []
+        for a, (dr, dc) in enumerate(((0, 1), (1, 0), (0, -1), (-1, 0))):
+            if a == moves[j]:
+                floor.append(-(len(moves) - j - 1.0))
+                ceiling.append(-float(manhattan(route[j + 1])))
+            else:
+                inside = 0 <= r + dr < maze.height and 0 <= c + dc < maze.width
+                near = min(manhattan(s), manhattan((r + dr) * maze.width + c + dc)) if inside else manhattan(s)
+                floor.append(-inf)
+                ceiling.append(-float(near))
+        floors.append(floor if g else [-inf] * 4)
+        ceilings.append(ceiling if g else [inf] * 4)
+    floors, ceilings = torch.tensor(floors), torch.tensor(ceilings)
+    torch.testing.assert_close(seen[0]["action_floor"], floors)
+    torch.testing.assert_close(seen[0]["action_ceiling"], ceilings)
+    with torch.no_grad():
+        nxt = batch["next"]
+        bootstrap = agent.loss.target_value_network(nxt["observation"], nxt["desired_goal"]).max(-1).values
+        y = nxt["reward"].squeeze(-1) - 1 + bootstrap
+        rows = torch.arange(64)
+        y = torch.maximum(y, floors[rows, batch["action"]])
+        y = torch.minimum(y, ceilings[rows, batch["action"]])
+        q = agent.q_network(batch["observation"], batch["desired_goal"])
+        td = ((q[rows, batch["action"]] - y) ** 2).mean()
+        held = torch.minimum(torch.maximum(q, floors), ceilings)
+        others = torch.ones(64, 4, dtype=torch.bool)
+        others[rows, batch["action"]] = False
+        outside = ((q - held) ** 2 * others).sum(-1).mean()
+        if bias > 0:  # every prediction for G above its ceiling: each of the other actions adds its distance
+            assert bool((q[for_g] > ceilings[for_g]).all())
+        else:  # every prediction below its finite floors: only the route's moves have one
+            finite = torch.isfinite(floors)
+            assert bool((q[finite] < floors[finite]).all())
+            assert int(torch.isfinite(floors[others]).sum()) > 0
+        assert float(outside) > 1.0
+    torch.testing.assert_close(forward(seen[0])["loss"], td + outside)
+
+
+def test_bound_all_actions_off_leaves_the_loss_on_the_taken_action():
+    maze = load_maze("easy_small")
+    counts, _, _ = route_counts(maze)
+    agent = make_agent("agent.distance_floor=true", "agent.distance_ceiling=true", counts=counts)
+    batch = random_batch(maze.n_cells)
+    batch.set("desired_goal", torch.full((64,), maze.goal_cell))
+    seen, _ = capture_loss_input(agent)
+    agent.replay_buffer.sample = lambda: batch.clone()
+    agent.update()
+    assert "action_floor" not in seen[0].keys() and "action_ceiling" not in seen[0].keys()
+
+
+def test_bound_all_actions_refuses_an_agent_without_a_distance_bound():
+    maze = load_maze("easy_small")
+    with pytest.raises(ValueError, match="bound_all_actions needs"):
+        make_agent("agent.bound_all_actions=true", counts=CountModel(maze.n_cells))

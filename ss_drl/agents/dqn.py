@@ -126,7 +126,10 @@ class GoalDQNLoss(LossModule):
     A sample that holds ``window_observation`` (the state after each of its window's steps) and ``window_reward``
     (the learner's return over its first k steps, k = 1..n-1) gets the largest of its k-step targets, k = 1..m
     (``DQNAgent``, ``agent.n_step_max``). ``target_floor`` and ``target_ceiling``, where the sample holds them, bound
-    the target from below and above (``agent.hindsight_bound``, ``agent.distance_ceiling``).
+    the target from below and above (``agent.hindsight_bound``, ``agent.distance_ceiling``). ``action_floor`` and
+    ``action_ceiling`` (B, A), where the sample holds them, bound every action of the sampled state: each action but
+    the taken one adds the loss of its prediction against that prediction clipped into its bounds, zero inside them
+    (``agent.bound_all_actions``).
     ``value_range = (low, high)`` clips the targets to the values a policy can have (a bootstrapped value outside it
     is the network's error, and with gamma near 1 such errors can feed on themselves until Q diverges).
 
@@ -175,7 +178,8 @@ class GoalDQNLoss(LossModule):
         online, target_network = self.value_network, self.target_value_network
         obs, goal = tensordict.get("observation"), tensordict.get("desired_goal")
         action = tensordict.get("action").unsqueeze(-1)
-        pred = online(obs, goal).gather(-1, action)
+        q_all = online(obs, goal)
+        pred = q_all.gather(-1, action)
         with torch.no_grad():
             next_obs, next_goal = tensordict.get(("next", "observation")), tensordict.get(("next", "desired_goal"))
             window_reward = tensordict.get("window_reward", None)  # set by the agent with n_step_max only
@@ -214,6 +218,22 @@ class GoalDQNLoss(LossModule):
             if self.value_range is not None:
                 target = target.clamp(*self.value_range)
         loss = distance_loss(pred.squeeze(-1), target.squeeze(-1), self.loss_function).mean()
+        action_floor = tensordict.get("action_floor", None)
+        action_ceiling = tensordict.get("action_ceiling", None)
+        if action_floor is not None or action_ceiling is not None:
+            # bound_all_actions: the bounds hold for Q* of every action, so each action of a sampled state that is
+            # not the taken one is pulled back into them (and left alone inside them); the taken one has its target.
+            with torch.no_grad():
+                held = q_all.detach()
+                if action_floor is not None:
+                    held = torch.maximum(held, action_floor)
+                if action_ceiling is not None:
+                    held = torch.minimum(held, action_ceiling)
+                if self.value_range is not None:
+                    held = held.clamp(*self.value_range)
+                others = torch.ones_like(held, dtype=torch.bool).scatter_(-1, action, False)
+            outside = distance_loss(q_all, held, self.loss_function) * others
+            loss = loss + outside.sum(-1).mean()
         detached = pred.detach()
         return TensorDict(loss=loss, q_mean=detached.mean(), td_abs=(detached - target).abs().mean())
 
@@ -273,6 +293,10 @@ class DQNAgent:
             self.distance_ceiling = DistanceCeiling(counts, maze.height, maze.width, maze.goal_cell)
         if cfg.get("distance_floor", False):
             self.distance_floor = DistanceFloor(counts, maze.goal_cell)
+        # bound_all_actions: the floor and ceiling hold every action of a sampled state for G, not the taken one alone.
+        self.bound_all_actions = bool(cfg.get("bound_all_actions", False))
+        if self.bound_all_actions and self.distance_floor is None and self.distance_ceiling is None:
+            raise ValueError("agent.bound_all_actions needs agent.distance_floor or agent.distance_ceiling")
         self.eval_network = cfg.get("eval_network", "online")
         # eval_network: average. A Polyak average of the online network at rate eval_tau for the greedy policy alone,
         # average <- (1 - eval_tau) average + eval_tau online after every optimizer step, from the initial weights
@@ -361,26 +385,33 @@ class DQNAgent:
         floor = self.loss.gamma ** (k - 1) - self.step_cost * self._discounted_steps(k)
         return torch.where(goal_steps > 0, floor, torch.full_like(floor, -torch.inf))
 
-    def _bound_for_g(self, sample: TensorDictBase, steps: torch.Tensor, other: float) -> torch.Tensor:
+    def _bound_for_g(
+        self, sample: TensorDictBase, steps: torch.Tensor, other: float, all_actions: bool = False
+    ) -> torch.Tensor:
         """(B, 1) for samples whose goal is the real G, the value of entering it k = ``steps[s_t * A + a_t]`` steps
         on, the same function of k as the hindsight bound (``-(k - 1)`` in the shortest-path form; -inf for k = 0);
-        ``other`` for every other goal."""
-        sa = sample.get("observation") * len(ACTIONS) + sample.get("action")
-        bound = self.hindsight_floor(steps[sa])
-        real = sample.get("desired_goal") == self.goal_cell
-        return torch.where(real, bound, torch.full_like(bound, other)).reshape(-1, 1)
+        ``other`` for every other goal. With ``all_actions``, (B, A): the same for every action a of s_t."""
+        obs = sample.get("observation")
+        if all_actions:
+            k = steps.view(-1, len(ACTIONS))[obs]
+        else:
+            k = steps[obs * len(ACTIONS) + sample.get("action")]
+        bound = self.hindsight_floor(k).reshape(obs.shape[0], -1)
+        real = (sample.get("desired_goal") == self.goal_cell).reshape(-1, 1)
+        return torch.where(real, bound, torch.full_like(bound, other))
 
-    def ceiling(self, sample: TensorDictBase) -> torch.Tensor:
+    def ceiling(self, sample: TensorDictBase, all_actions: bool = False) -> torch.Tensor:
         """(B, 1) the distance ceiling on each sample's target: for the real goal G, the value of entering it after
         the fewest steps from (s_t, a_t) that the count model cannot rule out (:class:`DistanceCeiling`); +inf for
-        other goals."""
-        return self._bound_for_g(sample, self.distance_ceiling.steps(), torch.inf)
+        other goals. With ``all_actions``, (B, A): the ceiling of every action of s_t."""
+        return self._bound_for_g(sample, self.distance_ceiling.steps(), torch.inf, all_actions)
 
-    def floor(self, sample: TensorDictBase) -> torch.Tensor:
+    def floor(self, sample: TensorDictBase, all_actions: bool = False) -> torch.Tensor:
         """(B, 1) the distance floor on each sample's target: for the real goal G, the value of entering it after the
         fewest steps from (s_t, a_t) along transitions the count model has observed (:class:`DistanceFloor`); -inf
-        for other goals and where no observed route leads to G."""
-        return self._bound_for_g(sample, self.distance_floor.steps(), -torch.inf)
+        for other goals and where no observed route leads to G. With ``all_actions``, (B, A): the floor of every
+        action of s_t."""
+        return self._bound_for_g(sample, self.distance_floor.steps(), -torch.inf, all_actions)
 
     @property
     def learning_rate(self) -> float:
@@ -423,6 +454,11 @@ class DQNAgent:
             sample.set("target_floor", floor)
         if self.distance_ceiling is not None:
             sample.set("target_ceiling", self.ceiling(sample))
+        if self.bound_all_actions:
+            if self.distance_floor is not None:
+                sample.set("action_floor", self.floor(sample, all_actions=True))
+            if self.distance_ceiling is not None:
+                sample.set("action_ceiling", self.ceiling(sample, all_actions=True))
         if self.n_step_max:
             sample.set("window_reward", self._window_reward.expand(sample.batch_size[0], -1))
         out = self.loss(sample)

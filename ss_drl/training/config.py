@@ -134,6 +134,10 @@ def validate_config(cfg: DictConfig) -> None:
         _boolean(cfg, "agent.n_step_max")
         _boolean(cfg, "agent.distance_ceiling")
         _boolean(cfg, "agent.distance_floor")
+        if _boolean(cfg, "agent.bound_all_actions") and not (
+            _get(cfg, "agent.distance_floor") or _get(cfg, "agent.distance_ceiling")
+        ):
+            raise ConfigError("agent.bound_all_actions: needs agent.distance_floor or agent.distance_ceiling")
         if _get(cfg, "agent.gamma") == 1 and _get(cfg, "agent.step_cost") == 0:
             raise ConfigError("agent.gamma: 1 needs agent.step_cost > 0 (undiscounted 0/1 rewards make every value 1)")
     # HER
