@@ -2,11 +2,12 @@
 
 The settings are the stages of ``docs/long_horizons.md``: J (no bound), L (J + ``agent.hindsight_bound``), LM (L +
 ``agent.n_step_max``, the default), LMC (LM + ``agent.distance_ceiling``), LCF (L + ``agent.distance_ceiling`` +
-``agent.distance_floor``, stage 12) and LCFA (LCF + ``agent.bound_all_actions``, stage 14). Each agent is built as
-the trainer builds it (``make_agent``) and gets the same replay data: random-walk episodes on the maze, with real
-moves and G terminal, which a count model also counts (the distance ceiling and floor read it; it does not grow here,
-so their searches run once, in the warm-up). The settings are timed in turn within each repeat, so the machine's load
-falls on all of them alike; the table gives the median ms per update and the ratio to J's median.
+``agent.distance_floor``, stage 12) LCFA (LCF + ``agent.bound_all_actions``, stage 14) and LCFAT (LCFA +
+``agent.model_targets``, stage 15). Each agent is built as the trainer builds it (``make_agent``) and gets the same
+replay data: random-walk episodes on the maze, with real moves and G terminal, which a count model also counts (the
+distance ceiling and floor read it; it does not grow here, so their searches run once, in the warm-up). The settings
+are timed in turn within each repeat, so the machine's load falls on all of them alike; the table gives the median ms
+per update and the ratio to J's median.
 """
 
 from __future__ import annotations
@@ -41,6 +42,17 @@ SETTINGS = (
             "agent.distance_ceiling=true",
             "agent.distance_floor=true",
             "agent.bound_all_actions=true",
+        ),
+    ),
+    (
+        "LCFAT",
+        (
+            "agent.hindsight_bound=true",
+            "agent.n_step_max=false",
+            "agent.distance_ceiling=true",
+            "agent.distance_floor=true",
+            "agent.bound_all_actions=true",
+            "agent.model_targets=true",
         ),
     ),
 )

@@ -186,6 +186,7 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
             self.distance_ceiling is not None,
             self.distance_floor is not None,
             self.bound_all_actions,
+            self.model_targets,
         )
         calls.append(on)
         return real_update(self)
@@ -194,14 +195,15 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
     repeats, sizes = 2, cli.QUICK_SIZES["update"]
     text = run_main(["--section", "update", "--quick", "--repeats", str(repeats)])
     (rows,) = tables(text)
-    assert [row["setting"] for row in rows] == ["J", "L", "LM", "LMC", "LCF", "LCFA"]
+    assert [row["setting"] for row in rows] == ["J", "L", "LM", "LMC", "LCF", "LCFA", "LCFAT"]
     expected_on = [
-        (False, False, False, False, False),
-        (True, False, False, False, False),
-        (True, True, False, False, False),
-        (True, True, True, False, False),
-        (True, False, True, True, False),
-        (True, False, True, True, True),
+        (False, False, False, False, False, False),
+        (True, False, False, False, False, False),
+        (True, True, False, False, False, False),
+        (True, True, True, False, False, False),
+        (True, False, True, True, False, False),
+        (True, False, True, True, True, False),
+        (True, False, True, True, True, True),
     ]
     for on, row in zip(expected_on, rows):
         assert calls.count(on) == 5 + repeats * sizes["updates"], row
@@ -209,7 +211,15 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
             ", ".join(
                 n
                 for n, o in zip(
-                    ("hindsight_bound", "n_step_max", "distance_ceiling", "distance_floor", "bound_all_actions"), on
+                    (
+                        "hindsight_bound",
+                        "n_step_max",
+                        "distance_ceiling",
+                        "distance_floor",
+                        "bound_all_actions",
+                        "model_targets",
+                    ),
+                    on,
                 )
                 if o
             )
@@ -217,7 +227,7 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
         )
         assert number(row["ms per update"]) > 0
         assert_quotient(row["vs J"], row["ms per update"], rows[0]["ms per update"])
-    assert len(calls) == 6 * (5 + repeats * sizes["updates"])
+    assert len(calls) == 7 * (5 + repeats * sizes["updates"])
     assert f"on {sizes['maze']} ({sizes['transitions']:,} random-walk transitions stored" in text
 
 

@@ -227,6 +227,7 @@ def test_bound_all_actions_needs_a_distance_bound():
         validate_config(compose_cfg(overrides=["agent.bound_all_actions=true"]))
     validate_config(compose_cfg(overrides=["agent.bound_all_actions=true", "agent.distance_floor=true"]))
     assert_config_error(compose_cfg(overrides=["agent.bound_all_actions=yes"]), "agent.bound_all_actions", "yes")
+    assert_config_error(compose_cfg(overrides=["agent.model_targets=1"]), "agent.model_targets", "1")
 
 
 @pytest.mark.parametrize("lr_end", ["0", "-0.001", "fast"])

@@ -717,3 +717,68 @@ def test_bound_all_actions_refuses_an_agent_without_a_distance_bound():
     maze = load_maze("easy_small")
     with pytest.raises(ValueError, match="bound_all_actions needs"):
         make_agent("agent.bound_all_actions=true", counts=CountModel(maze.n_cells))
+
+
+# --- one-step targets for the other actions through the count model (agent.model_targets) ---------------------------
+def test_model_targets_give_every_seen_action_its_one_step_target_by_hand():
+    """The count model has seen one route into G on easy_small and, at one route cell, a bump. The target network
+    is a table V (the same value for all four actions, so its max is V). For a sample at route cell s_j with goal g,
+    each action but the taken one that the model has seen from s_j gets r - 1 + V(s'), r = 1 and no bootstrap where
+    s' = g (entering g ends): the route's move (s' = s_{j+1}) and the bump (s' = s_j). The untried ones add no loss.
+    Half the samples ask for G, the other half for s_{j+1} itself (a relabeled goal, entered by the route's move)."""
+    maze = load_maze("easy_small")
+    counts, route, moves = route_counts(maze)
+    table = maze.transition_table()
+    j_bump, a_bump = next((j, a) for j, s in enumerate(route[:-1]) for a in range(4) if table[s, a] == s)
+    counts.update(torch.tensor([route[j_bump]]), torch.tensor([a_bump]), torch.tensor([route[j_bump]]), torch.zeros(1))
+    agent = make_agent(
+        "agent.step_cost=1", "agent.gamma=1", "agent.model_targets=true", "agent.double_dqn=false", counts=counts
+    )
+    v = -torch.arange(maze.n_cells, dtype=torch.float32) / 7.0  # any distinct values
+    agent.loss.target_value_network = lambda obs, goal: v[obs].unsqueeze(-1).expand(*obs.shape, 4)
+    batch = random_batch(maze.n_cells)
+    batch.set(("next", "terminated"), torch.zeros(64, 1, dtype=torch.bool))
+    i = torch.arange(64) % len(moves)
+    i[:8] = j_bump  # a few samples at the bump's cell
+    cells = torch.tensor(route)
+    batch.set("observation", cells[i])
+    batch.set("action", torch.randint(4, (64,), generator=torch.Generator().manual_seed(2)))
+    for_g = torch.arange(64) % 2 == 0
+    batch.set("desired_goal", torch.where(for_g, maze.goal_cell, cells[i + 1]))
+    batch.set(("next", "desired_goal"), batch["desired_goal"])
+    seen, forward = capture_loss_input(agent)
+    agent.replay_buffer.sample = lambda: batch.clone()
+    agent.update()
+    with torch.no_grad():
+        q = agent.q_network(batch["observation"], batch["desired_goal"])
+    expected_next = torch.full((64, 4), -1)
+    held = q.clone()
+    for b, (j, g) in enumerate(zip(i.tolist(), batch["desired_goal"].tolist())):
+        seen_moves = {moves[j]: route[j + 1]}
+        if j == j_bump:
+            seen_moves[a_bump] = route[j]
+        for a, s2 in seen_moves.items():
+            expected_next[b, a] = s2
+            held[b, a] = 0.0 if s2 == g else -1.0 + float(v[s2])
+    assert torch.equal(seen[0]["model_next_observation"], expected_next)
+    rows, taken = torch.arange(64), batch["action"]
+    nxt = batch["next"]
+    y = nxt["reward"].squeeze(-1) - 1 + v[nxt["observation"]]
+    td = ((q[rows, taken] - y) ** 2).mean()
+    others = torch.ones(64, 4, dtype=torch.bool)
+    others[rows, taken] = False
+    outside = ((q - held) ** 2 * others).sum(-1).mean()
+    assert int((others & (expected_next >= 0)).sum()) >= 32 and float(outside) > 0.1  # the term is not empty
+    assert int((others & (expected_next >= 0) & (expected_next == batch["desired_goal"].unsqueeze(-1))).sum()) > 0
+    torch.testing.assert_close(forward(seen[0])["loss"], td + outside)
+
+
+def test_model_targets_refuse_a_stochastic_model():
+    maze = load_maze("easy_small")
+    counts = CountModel(maze.n_cells)
+    s = maze.start_cell
+    counts.update(torch.tensor([s, s]), torch.tensor([0, 0]), torch.tensor([s, s + 1]), torch.zeros(2))
+    agent = make_agent("agent.model_targets=true", counts=counts)
+    agent.replay_buffer.sample = lambda: random_batch(maze.n_cells)
+    with pytest.raises(ValueError, match="deterministic"):
+        agent.update()

@@ -220,11 +220,22 @@ class GoalDQNLoss(LossModule):
         loss = distance_loss(pred.squeeze(-1), target.squeeze(-1), self.loss_function).mean()
         action_floor = tensordict.get("action_floor", None)
         action_ceiling = tensordict.get("action_ceiling", None)
-        if action_floor is not None or action_ceiling is not None:
-            # bound_all_actions: the bounds hold for Q* of every action, so each action of a sampled state that is
-            # not the taken one is pulled back into them (and left alone inside them); the taken one has its target.
+        model_next = tensordict.get("model_next_observation", None)
+        if action_floor is not None or action_ceiling is not None or model_next is not None:
+            # Every action of a sampled state but the taken one (which has its target above): with model_targets,
+            # one that the count model has seen from this state gets the one-step target through the successor
+            # observed for it; with bound_all_actions, each is then held to its bounds. An action with neither
+            # keeps its own prediction (no loss).
             with torch.no_grad():
                 held = q_all.detach()
+                if model_next is not None:
+                    known = model_next >= 0
+                    values = self._bootstrap(
+                        model_next.clamp(min=0).flatten(), goal.repeat_interleave(held.shape[-1])
+                    ).view(held.shape)
+                    entered = tensordict.get("model_terminated")
+                    model_target = tensordict.get("model_reward") + self.gamma * (~entered).to(values.dtype) * values
+                    held = torch.where(known, model_target, held)
                 if action_floor is not None:
                     held = torch.maximum(held, action_floor)
                 if action_ceiling is not None:
@@ -295,6 +306,11 @@ class DQNAgent:
             self.distance_floor = DistanceFloor(counts, maze.goal_cell)
         # bound_all_actions: the floor and ceiling hold every action of a sampled state for G, not the taken one alone.
         self.bound_all_actions = bool(cfg.get("bound_all_actions", False))
+        # model_targets: every other action of a sampled state that the count model has seen gets a one-step target.
+        self.model_targets = bool(cfg.get("model_targets", False))
+        if self.model_targets and counts is None:
+            raise ValueError("agent.model_targets needs the count model (DQNAgent(..., counts=...))")
+        self.counts = counts
         if self.bound_all_actions and self.distance_floor is None and self.distance_ceiling is None:
             raise ValueError("agent.bound_all_actions needs agent.distance_floor or agent.distance_ceiling")
         self.eval_network = cfg.get("eval_network", "online")
@@ -454,6 +470,13 @@ class DQNAgent:
             sample.set("target_floor", floor)
         if self.distance_ceiling is not None:
             sample.set("target_ceiling", self.ceiling(sample))
+        if self.model_targets:
+            # The successor the count model observed for each action of s_t (-1: untried), entering the goal ends.
+            succ = self.counts.successors().view(-1, len(ACTIONS))[sample.get("observation")]
+            entered = succ == sample.get("desired_goal").reshape(-1, 1)
+            sample.set("model_next_observation", succ)
+            sample.set("model_terminated", entered)
+            sample.set("model_reward", entered.to(torch.float32) - self.step_cost)
         if self.bound_all_actions:
             if self.distance_floor is not None:
                 sample.set("action_floor", self.floor(sample, all_actions=True))

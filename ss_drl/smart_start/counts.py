@@ -111,6 +111,21 @@ class CountModel:
         prob = self.sas_counts.to(torch.float64) / self.sa_counts[sa].to(torch.float64)
         return sa // self.n_actions, sa % self.n_actions, next_state, prob
 
+    def successors(self) -> torch.Tensor:
+        """(S * A,) int64, flat ``s * A + a``: the successor observed for each tried (s, a), -1 for an untried one
+        (cached with the structure). Refused if some (s, a) was seen to lead to two cells: it is one cell only in a
+        deterministic maze."""
+        st = self.structure()
+        if "observed_successor" not in st.derived:
+            if not st.deterministic:
+                raise ValueError(
+                    "agent.model_targets needs a deterministic maze: some (s, a) was seen to lead to two cells"
+                )
+            succ = torch.full((self.n_states * self.n_actions,), -1, dtype=torch.int64)
+            succ[st.sa] = st.next_state
+            st.derived["observed_successor"] = succ
+        return st.derived["observed_successor"]
+
     def structure(self) -> ModelStructure:
         """The observed transitions in the planner's layout (cached until a new key is inserted)."""
         if self._structure is None or self._structure.keys is not self.keys:

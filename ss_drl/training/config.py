@@ -134,6 +134,7 @@ def validate_config(cfg: DictConfig) -> None:
         _boolean(cfg, "agent.n_step_max")
         _boolean(cfg, "agent.distance_ceiling")
         _boolean(cfg, "agent.distance_floor")
+        _boolean(cfg, "agent.model_targets")
         if _boolean(cfg, "agent.bound_all_actions") and not (
             _get(cfg, "agent.distance_floor") or _get(cfg, "agent.distance_ceiling")
         ):
