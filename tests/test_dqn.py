@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import warnings
+from functools import partial
 
 import pytest
 import torch
@@ -361,6 +362,20 @@ def test_hindsight_floor_by_hand(step_cost, gamma, floors):
     torch.testing.assert_close(floor, torch.tensor([floors]).T)
 
 
+def manhattan_to_goal(maze, cell: int) -> int:
+    """|cell - G|_1 on ``maze``'s grid: the steps to G in a grid with no wall."""
+    (r, c), (gr, gc) = divmod(cell, maze.width), maze.goal
+    return abs(r - gr) + abs(c - gc)
+
+
+def update_on(agent, batch: TensorDict) -> tuple[list[TensorDict], object]:
+    """One agent update on ``batch`` as its sample; returns what its loss saw and the loss's own forward."""
+    seen, forward = capture_loss_input(agent)
+    agent.replay_buffer.sample = lambda: batch.clone()
+    agent.update()
+    return seen, forward
+
+
 def capture_loss_input(agent) -> tuple[list[TensorDict], object]:
     """Record each tensordict the agent's update hands its loss; returns the list and the loss's own forward."""
     seen, forward = [], agent.loss.forward
@@ -378,9 +393,7 @@ def test_hindsight_bound_lifts_only_the_targets_below_it():
     batch.set(("next", "terminated"), torch.zeros(64, 1, dtype=torch.bool))
     goal_steps = torch.tensor([[3], [0]]).repeat(32, 1)
     batch.set("goal_steps", goal_steps)
-    seen, forward = capture_loss_input(agent)
-    agent.replay_buffer.sample = lambda: batch.clone()
-    agent.update()
+    seen, forward = update_on(agent, batch)
     torch.testing.assert_close(seen[0]["target_floor"], agent.hindsight_floor(goal_steps))
     with torch.no_grad():
         nxt = batch["next"]
@@ -417,13 +430,9 @@ def test_distance_ceiling_caps_only_the_targets_for_g_above_it():
     for_g = torch.arange(64) % 2 == 0
     batch.set("desired_goal", torch.where(for_g, maze.goal_cell, batch["desired_goal"]))
     batch.set(("next", "desired_goal"), batch["desired_goal"])
-    seen, forward = capture_loss_input(agent)
-    agent.replay_buffer.sample = lambda: batch.clone()
-    agent.update()
+    seen, forward = update_on(agent, batch)
 
-    def manhattan(cell):
-        (r, c), (gr, gc) = divmod(cell, maze.width), maze.goal
-        return abs(r - gr) + abs(c - gc)
+    manhattan = partial(manhattan_to_goal, maze)
 
     expected = []
     for s, a, g in zip(batch["observation"].tolist(), batch["action"].tolist(), for_g.tolist()):
@@ -537,6 +546,21 @@ def test_without_the_option_no_floor_reaches_the_loss():
     assert "target_floor" not in seen[0].keys()
 
 
+def route_counts(maze) -> tuple[CountModel, list[int], list[int]]:
+    """A count model that has seen one shortest route S ... G on ``maze`` and nothing else; the route's cells and
+    moves."""
+    counts = CountModel(maze.n_cells)
+    table = maze.transition_table()
+    dist = maze.distances_from(maze.goal).reshape(-1)
+    route = [maze.start_cell]
+    while route[-1] != maze.goal_cell:
+        route.append(min(table[route[-1]], key=lambda c: dist[c]))
+    route = [int(c) for c in route]
+    moves = [next(a for a in range(4) if table[s, a] == s2) for s, s2 in zip(route[:-1], route[1:])]
+    counts.update(torch.tensor(route[:-1]), torch.tensor(moves), torch.tensor(route[1:]), torch.zeros(len(moves)))
+    return counts, route, moves
+
+
 # --- the distance floor (agent.distance_floor) ----------------------------------------------------------------------
 def test_distance_floor_lifts_the_targets_for_g_and_joins_the_hindsight_bound():
     """The count model has seen one route into G on easy_small; for a sample whose goal is G and whose (s, a) lies
@@ -544,15 +568,7 @@ def test_distance_floor_lifts_the_targets_for_g_and_joins_the_hindsight_bound():
     the n-step target (pushed far down by a value bias of -100), the hindsight bound and the floor. Samples for
     other goals, or off the route, keep the hindsight bound alone."""
     maze = load_maze("easy_small")
-    counts = CountModel(maze.n_cells)
-    table = maze.transition_table()
-    dist = maze.distances_from(maze.goal).reshape(-1)
-    route = [maze.start_cell]  # a shortest path S ... G, down the true distances
-    while route[-1] != maze.goal_cell:
-        route.append(min(table[route[-1]], key=lambda c: dist[c]))
-    route = [int(c) for c in route]
-    moves = [next(a for a in range(4) if table[s, a] == s2) for s, s2 in zip(route[:-1], route[1:])]
-    counts.update(torch.tensor(route[:-1]), torch.tensor(moves), torch.tensor(route[1:]), torch.zeros(len(moves)))
+    counts, route, moves = route_counts(maze)
     agent = make_agent(
         "agent.step_cost=1",
         "agent.gamma=1",
@@ -574,9 +590,7 @@ def test_distance_floor_lifts_the_targets_for_g_and_joins_the_hindsight_bound():
     batch.set(("next", "desired_goal"), batch["desired_goal"])
     goal_steps = torch.where(torch.arange(64) % 8 == 0, 3, 0).unsqueeze(-1)  # the hindsight bound, k = 3
     batch.set("goal_steps", goal_steps)
-    seen, forward = capture_loss_input(agent)
-    agent.replay_buffer.sample = lambda: batch.clone()
-    agent.update()
+    seen, forward = update_on(agent, batch)
     remaining = {(s, a): len(moves) - j for j, (s, a) in enumerate(zip(route, moves))}  # steps to entering G
     expected = []
     for j, (s, a) in enumerate(zip(batch["observation"].tolist(), batch["action"].tolist())):
@@ -605,21 +619,6 @@ def test_distance_floor_refuses_an_agent_without_the_count_model():
 
 
 # --- the bounds on every action (agent.bound_all_actions) -----------------------------------------------------------
-def route_counts(maze) -> tuple[CountModel, list[int], list[int]]:
-    """A count model that has seen one shortest route S ... G on ``maze`` and nothing else; the route's cells and
-    moves."""
-    counts = CountModel(maze.n_cells)
-    table = maze.transition_table()
-    dist = maze.distances_from(maze.goal).reshape(-1)
-    route = [maze.start_cell]
-    while route[-1] != maze.goal_cell:
-        route.append(min(table[route[-1]], key=lambda c: dist[c]))
-    route = [int(c) for c in route]
-    moves = [next(a for a in range(4) if table[s, a] == s2) for s, s2 in zip(route[:-1], route[1:])]
-    counts.update(torch.tensor(route[:-1]), torch.tensor(moves), torch.tensor(route[1:]), torch.zeros(len(moves)))
-    return counts, route, moves
-
-
 @pytest.mark.parametrize("bias", [10.0, -100.0], ids=["above_the_ceilings", "below_the_floors"])
 def test_bound_all_actions_holds_every_action_of_a_state_for_g_by_hand(bias):
     """The count model has seen one route into G on easy_small and no wall. For a sample for G at route cell s_j:
@@ -650,13 +649,9 @@ def test_bound_all_actions_holds_every_action_of_a_state_for_g_by_hand(bias):
     for_g = torch.arange(64) % 4 != 3
     batch.set("desired_goal", torch.where(for_g, maze.goal_cell, batch["desired_goal"]))
     batch.set(("next", "desired_goal"), batch["desired_goal"])
-    seen, forward = capture_loss_input(agent)
-    agent.replay_buffer.sample = lambda: batch.clone()
-    agent.update()
+    seen, forward = update_on(agent, batch)
 
-    def manhattan(cell):
-        (r, c), (gr, gc) = divmod(cell, maze.width), maze.goal
-        return abs(r - gr) + abs(c - gc)
+    manhattan = partial(manhattan_to_goal, maze)
 
     inf = float("inf")
     floors, ceilings = [], []
@@ -746,9 +741,7 @@ def test_model_targets_give_every_seen_action_its_one_step_target_by_hand():
     for_g = torch.arange(64) % 2 == 0
     batch.set("desired_goal", torch.where(for_g, maze.goal_cell, cells[i + 1]))
     batch.set(("next", "desired_goal"), batch["desired_goal"])
-    seen, forward = capture_loss_input(agent)
-    agent.replay_buffer.sample = lambda: batch.clone()
-    agent.update()
+    seen, forward = update_on(agent, batch)
     with torch.no_grad():
         q = agent.q_network(batch["observation"], batch["desired_goal"])
     expected_next = torch.full((64, 4), -1)
