@@ -129,7 +129,9 @@ class GoalDQNLoss(LossModule):
     the target from below and above (``agent.hindsight_bound``, ``agent.distance_ceiling``). ``action_floor`` and
     ``action_ceiling`` (B, A), where the sample holds them, bound every action of the sampled state: each action but
     the taken one adds the loss of its prediction against that prediction clipped into its bounds, zero inside them
-    (``agent.bound_all_actions``).
+    (``agent.bound_all_actions``). ``model_next_observation`` (B, A; -1 for an untried action), with
+    ``model_reward`` and ``model_terminated``, gives each other action the one-step target through that successor
+    first (``agent.model_targets``).
     ``value_range = (low, high)`` clips the targets to the values a policy can have (a bootstrapped value outside it
     is the network's error, and with gamma near 1 such errors can feed on themselves until Q diverges).
 
