@@ -1,13 +1,13 @@
 """The ``update`` section: ms per ``DQNAgent.update()`` under each of the TD-target options of issue 12, side by side.
 
 The settings are the stages of ``docs/long_horizons.md``: J (no bound), L (J + ``agent.hindsight_bound``), LM (L +
-``agent.n_step_max``, the default), LMC (LM + ``agent.distance_ceiling``), LCF (L + ``agent.distance_ceiling`` +
-``agent.distance_floor``, stage 12) LCFA (LCF + ``agent.bound_all_actions``, stage 14) and LCFAT (LCFA +
+``agent.n_step_max``, stage 10, the default), LMC (LM + ``agent.distance_ceiling``), LCF (L + ``agent.distance_ceiling``
++ ``agent.distance_floor``, stage 12), LCFA (LCF + ``agent.bound_all_actions``, stage 14) and LCFAT (LCFA +
 ``agent.model_targets``, stage 15). Each agent is built as the trainer builds it (``make_agent``) and gets the same
 replay data: random-walk episodes on the maze, with real moves and G terminal, which a count model also counts (the
-distance ceiling and floor read it; it does not grow here, so their searches run once, in the warm-up). The settings
-are timed in turn within each repeat, so the machine's load falls on all of them alike; the table gives the median ms
-per update and the ratio to J's median.
+distance ceiling and floor read it; it does not grow here, so their searches run once, in the warm-up). The settings are
+timed in turn within each repeat, so the machine's load falls on all of them alike; the table gives the median ms per
+update and the ratio to J's median.
 """
 
 from __future__ import annotations
@@ -19,41 +19,33 @@ import torch
 
 from benchmarks.common import compose_config, fmt_ms, markdown_table, median
 
+#: The TD-target options of issue 12, in the order of the stages that added them.
+OPTIONS = (
+    "hindsight_bound",
+    "n_step_max",
+    "distance_ceiling",
+    "distance_floor",
+    "bound_all_actions",
+    "model_targets",
+)
+
+
+def _setting(*on: str) -> tuple[str, ...]:
+    """Overrides that turn on the options ``on`` and every other one of :data:`OPTIONS` off, whatever the defaults."""
+    return tuple(f"agent.{option}={str(option in on).lower()}" for option in OPTIONS)
+
+
 #: (name, overrides) of each setting timed, in the order of the stages that added them.
 SETTINGS = (
-    ("J", ("agent.hindsight_bound=false", "agent.n_step_max=false")),
-    ("L", ("agent.hindsight_bound=true", "agent.n_step_max=false")),
-    ("LM", ("agent.hindsight_bound=true", "agent.n_step_max=true")),
-    ("LMC", ("agent.hindsight_bound=true", "agent.n_step_max=true", "agent.distance_ceiling=true")),
-    (
-        "LCF",
-        (
-            "agent.hindsight_bound=true",
-            "agent.n_step_max=false",
-            "agent.distance_ceiling=true",
-            "agent.distance_floor=true",
-        ),
-    ),
-    (
-        "LCFA",
-        (
-            "agent.hindsight_bound=true",
-            "agent.n_step_max=false",
-            "agent.distance_ceiling=true",
-            "agent.distance_floor=true",
-            "agent.bound_all_actions=true",
-        ),
-    ),
+    ("J", _setting()),
+    ("L", _setting("hindsight_bound")),
+    ("LM", _setting("hindsight_bound", "n_step_max")),
+    ("LMC", _setting("hindsight_bound", "n_step_max", "distance_ceiling")),
+    ("LCF", _setting("hindsight_bound", "distance_ceiling", "distance_floor")),
+    ("LCFA", _setting("hindsight_bound", "distance_ceiling", "distance_floor", "bound_all_actions")),
     (
         "LCFAT",
-        (
-            "agent.hindsight_bound=true",
-            "agent.n_step_max=false",
-            "agent.distance_ceiling=true",
-            "agent.distance_floor=true",
-            "agent.bound_all_actions=true",
-            "agent.model_targets=true",
-        ),
+        _setting("hindsight_bound", "distance_ceiling", "distance_floor", "bound_all_actions", "model_targets"),
     ),
 )
 

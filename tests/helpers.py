@@ -25,6 +25,14 @@ TINY = [
     "trainer.eval_interval=150",
 ]
 
+#: Overrides that turn off every target that reads the count model, for a DQNAgent built without one.
+NO_COUNT_MODEL = [
+    "agent.distance_ceiling=false",
+    "agent.distance_floor=false",
+    "agent.bound_all_actions=false",
+    "agent.model_targets=false",
+]
+
 #: The spec: steps on a shortest S -> G path of every shipped maze.
 SHORTEST = {
     "easy": 31,

@@ -224,8 +224,16 @@ def test_undiscounted_needs_a_step_cost():
 
 def test_bound_all_actions_needs_a_distance_bound():
     with pytest.raises(ConfigError, match=r"^agent.bound_all_actions: needs agent.distance_floor or"):
-        validate_config(compose_cfg(overrides=["agent.bound_all_actions=true"]))
-    validate_config(compose_cfg(overrides=["agent.bound_all_actions=true", "agent.distance_floor=true"]))
+        validate_config(
+            compose_cfg(
+                overrides=["agent.bound_all_actions=true", "agent.distance_floor=false", "agent.distance_ceiling=false"]
+            )
+        )
+    validate_config(
+        compose_cfg(
+            overrides=["agent.bound_all_actions=true", "agent.distance_floor=true", "agent.distance_ceiling=false"]
+        )
+    )
     assert_config_error(compose_cfg(overrides=["agent.bound_all_actions=yes"]), "agent.bound_all_actions", "yes")
     assert_config_error(compose_cfg(overrides=["agent.model_targets=1"]), "agent.model_targets", "1")
 

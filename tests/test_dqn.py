@@ -8,7 +8,7 @@ from functools import partial
 
 import pytest
 import torch
-from helpers import compose_cfg
+from helpers import NO_COUNT_MODEL, compose_cfg
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.data import Categorical
@@ -29,6 +29,7 @@ PLAIN = {  # TD(0) on 0/1 rewards with hard target copies: the setting the hand 
     "agent.target_update": "hard",
     "agent.hindsight_bound": "false",
     "agent.n_step_max": "false",
+    **dict(o.split("=", 1) for o in NO_COUNT_MODEL),
 }
 
 
@@ -406,7 +407,7 @@ def test_hindsight_bound_lifts_only_the_targets_below_it():
 
 
 def test_hindsight_bound_refuses_a_buffer_without_goal_steps():
-    cfg = compose_cfg("+experiment=easy_small_dqn_her", "agent.hindsight_bound=true")
+    cfg = compose_cfg("+experiment=easy_small_dqn_her", "agent.hindsight_bound=true", *NO_COUNT_MODEL)
     buffer = HindsightReplayBuffer(1000, 1, cfg.agent.batch_size)
     with pytest.raises(ValueError, match="goal_steps"):
         DQNAgent(cfg.agent, load_maze("easy_small"), buffer)
@@ -459,7 +460,9 @@ def test_distance_ceiling_refuses_an_agent_without_the_count_model():
 
 # --- n_step_max: the largest of the window's k-step targets --------------------------------------------------------
 def test_n_step_max_refuses_a_buffer_without_window_states():
-    cfg = compose_cfg("+experiment=easy_small_dqn_her", "agent.hindsight_bound=false", "agent.n_step_max=true")
+    cfg = compose_cfg(
+        "+experiment=easy_small_dqn_her", "agent.hindsight_bound=false", "agent.n_step_max=true", *NO_COUNT_MODEL
+    )
     buffer = HindsightReplayBuffer(1000, 1, cfg.agent.batch_size)
     with pytest.raises(ValueError, match="window_states"):
         DQNAgent(cfg.agent, load_maze("easy_small"), buffer)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from helpers import compose_cfg
+from helpers import NO_COUNT_MODEL, compose_cfg
 
 from ss_drl.agents.dqn import DQNAgent
 from ss_drl.envs.batched import BatchedMazeEnv
@@ -93,6 +93,7 @@ def _offline_goal_reaching(k: int) -> float:
         "+experiment=easy_small_dqn_her",
         f"her.k={k}",
         "agent.encoder=coords",
+        *NO_COUNT_MODEL,
     )
     maze = load_maze("easy_small")
     buffer = HindsightReplayBuffer(
