@@ -247,3 +247,44 @@ def test_the_evaluated_network_changes_only_the_evaluations(tmp_path):
         final = without_timing(EVAL_FILE, network)[-1]
         assert int(final[0]) == 1500  # the last evaluation is at the end of the run
         assert int(final[2]) == greedy_rollout(trainer.agent, trainer.maze, 200).length
+
+
+def test_episode_rows_record_the_end_cell_and_the_cells_visited_so_far(tmp_path):
+    """``end_state`` is the cell each episode ended in (G when it succeeded) and ``states_visited`` the distinct
+    cells departed from up to the end of the episode: checked against the transitions, replayed by hand."""
+    cfg = compose_cfg(
+        "+experiment=easy_small_ss_her",
+        "trainer.total_env_steps=1500",
+        "env.max_steps=60",
+        "trainer.eval_interval=1500",
+        *SMALL,
+    )
+    trainer = Trainer(cfg, tmp_path)
+    trainer.start_time = 0.0  # set by train(), which this test replaces with its own loop
+    collector, episodes, cells = trainer.collector, [], []
+    departed: set[int] = set()
+    while collector.env_steps < 1500:
+        batch, finished = collector.rollout()
+        s, s2 = batch["observation"][:, 0].tolist(), batch["next", "observation"][:, 0].tolist()
+        trainer.counts.update(
+            batch["observation"], batch["action"], batch["next", "observation"], batch["next", "reward"]
+        )
+        departed.update(s)
+        for episode in finished:  # an episode ends a batch, so its last transition is the batch's last
+            assert episode.end_state == s2[-1]
+            trainer._log_episode(episode)
+            episodes.append(episode)
+            cells.append(len(departed))
+    trainer.logger.close()
+    rows = (tmp_path / EPISODES_FILE).read_text().splitlines()
+    header = rows[0].split(",")
+    end, visited, success = (header.index(c) for c in ("end_state", "states_visited", "success"))
+    rows = [row.split(",") for row in rows[1:]]
+    assert len(rows) == len(episodes) >= 20
+    goal = "{}:{}".format(*trainer.maze.goal)
+    assert any(row[success] == "1" for row in rows) and any(row[success] == "0" for row in rows)
+    for row, episode, n in zip(rows, episodes, cells):
+        assert row[end] == "{}:{}".format(*trainer.maze.pos(episode.end_state))
+        assert (row[end] == goal) == (row[success] == "1")
+        assert int(row[visited]) == n
+    assert cells == sorted(cells) and cells[0] < cells[-1]

@@ -40,6 +40,7 @@ class Episode:
     ss_reached: bool
     ss_steps: int
     ss_planned_steps: int
+    end_state: int  # the cell the episode ended in (G on success)
 
 
 class MazeCollector:
@@ -106,7 +107,7 @@ class MazeCollector:
             if guided is not None:
                 self.smart_start.after_step(guided, new_cells, done)
             if bool(done.any()):
-                finished = self._finish(done, terminated[t].squeeze(-1))
+                finished = self._finish(done, terminated[t].squeeze(-1), new_cells)
         batch = TensorDict(
             {
                 "observation": obs[:steps],
@@ -151,7 +152,7 @@ class MazeCollector:
             obs, goals = self._td.get("observation"), self._td.get("desired_goal")
             self.smart_start.start_episodes(copies, obs, goals, self.agent.q_values)
 
-    def _finish(self, done: torch.Tensor, success: torch.Tensor) -> list[Episode]:
+    def _finish(self, done: torch.Tensor, success: torch.Tensor, end_cells: torch.Tensor) -> list[Episode]:
         ss = self.smart_start
         episodes = []
         for e in torch.nonzero(done).squeeze(-1).tolist():
@@ -168,6 +169,7 @@ class MazeCollector:
                     ss_reached=used and bool(ss.reached[e]),
                     ss_steps=int(ss.steps[e]) if used else 0,
                     ss_planned_steps=int(ss.planned_steps[e]) if used else 0,
+                    end_state=int(end_cells[e]),
                 )
             )
         if ss is not None:

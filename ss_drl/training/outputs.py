@@ -37,7 +37,9 @@ EPISODE_COLUMNS = (
     "ss_reached",  # 1 if the guided phase reached S_ss (within theta)
     "ss_steps",  # steps spent in the guided phase
     "epsilon",  # exploration epsilon when the episode ended
-    "wall_s",  # seconds since the run started
+    "end_state",  # the cell the episode ended in, as "row:col" (G on success; where the agent was when it was cut)
+    "states_visited",  # exploration coverage: distinct cells departed from so far, this episode included
+    "wall_s",  # seconds since the run started (the last column)
 )
 
 EVAL_COLUMNS = (

@@ -264,6 +264,7 @@ class Trainer:
         if episode.smart_start:
             self.ss_targets.append(episode.ss_target)
         target = "" if episode.ss_target < 0 else "{}:{}".format(*self.maze.pos(episode.ss_target))
+        visited = int(torch.count_nonzero(self.counts.state_counts))
         row = {
             "episode": self.episodes,
             "env_id": episode.env_id,
@@ -276,6 +277,8 @@ class Trainer:
             "ss_reached": int(episode.ss_reached),
             "ss_steps": episode.ss_steps,
             "epsilon": round(self.agent.epsilon, 6),
+            "end_state": "{}:{}".format(*self.maze.pos(episode.end_state)),
+            "states_visited": visited,
             "wall_s": round(time.perf_counter() - self.start_time, 3),
         }
         self.logger.log_episode(row)
@@ -288,6 +291,7 @@ class Trainer:
                 "train/success": int(episode.success),
                 "train/smart_start": int(episode.smart_start),
                 "train/ss_steps": episode.ss_steps,
+                "train/states_visited": visited,
                 "time/env_steps_per_s": self.collector.env_steps / max(time.perf_counter() - self.start_time, 1e-9),
             },
             step=episode.env_steps,
