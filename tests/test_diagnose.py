@@ -22,6 +22,7 @@ from ss_drl.analysis.diagnose import (
     accuracy_by_distance,
     diagnose_agent,
     diagnose_run,
+    exploration_before_first_goal,
     format_markdown,
     training_data,
     value_gamma,
@@ -230,6 +231,41 @@ def test_training_data_of_old_and_unlucky_runs(tmp_path):
     assert t["goal_share_mean"] is None and "no goal_share column" in t["train_note"]
     (tmp_path / "episodes.csv").unlink()
     assert "no episodes.csv" in training_data(tmp_path)["episodes_note"]
+
+
+def test_exploration_before_the_first_goal_by_hand(tmp_path, maze):
+    """Three episodes end before the first success (episode 4); episode 5's row comes after it and is left out.
+    Distances to G = (1, 1) by hand_distance: (10, 0) 20 (Manhattan 10), (9, 5) 14 (12), (2, 8) 8 (8); the smart
+    start states (11, 8) 17 and (2, 2) 2 (episode 1 has no guided phase)."""
+    rows = [
+        {"episode": 1, "env_steps": 100, "end_state": "10:0", "ss_target": "", "states_visited": 12},
+        {"episode": 2, "env_steps": 200, "end_state": "9:5", "ss_target": "11:8", "states_visited": 20},
+        {"episode": 3, "env_steps": 300, "end_state": "2:8", "ss_target": "2:2", "states_visited": 25},
+        {"episode": 4, "env_steps": 340, "end_state": "1:1", "ss_target": "2:2", "states_visited": 26, "success": 1},
+        {"episode": 5, "env_steps": 440, "end_state": "0:0", "ss_target": "11:0", "states_visited": 30},
+    ]
+    write_csv(tmp_path / "episodes.csv", EPISODE_COLUMNS, rows)
+    x = exploration_before_first_goal(tmp_path, maze)
+    assert x == {
+        "first_goal_env_step": 340,
+        "episodes": 3,
+        "env_steps": 300,
+        "states_visited": 25,
+        "free_states": 72,
+        "end_true_distance_median": 14.0,
+        "end_manhattan_distance_median": 10.0,
+        "ss_target_true_distance_median": 9.5,
+    }
+    write_csv(tmp_path / "episodes.csv", EPISODE_COLUMNS, rows[:2])  # G never reached: every episode counts
+    x = exploration_before_first_goal(tmp_path, maze)
+    assert x["first_goal_env_step"] is None and x["episodes"] == 2 and x["end_true_distance_median"] == 17.0
+    rows[1]["end_state"] = "12:0"  # row 12 lies outside the 12 x 9 maze
+    write_csv(tmp_path / "episodes.csv", EPISODE_COLUMNS, rows)
+    with pytest.raises(DiagnoseError, match=r"episodes.csv line 3: end_state 12:0 lies outside the 12x9 maze"):
+        exploration_before_first_goal(tmp_path, maze)
+    old = [c for c in EPISODE_COLUMNS if c not in ("end_state", "states_visited")]
+    write_csv(tmp_path / "episodes.csv", old, rows)
+    assert "no end_state/states_visited columns" in exploration_before_first_goal(tmp_path, maze)["note"]
 
 
 def test_diagnose_run_errors(tmp_path):

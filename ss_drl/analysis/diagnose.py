@@ -11,6 +11,11 @@ fix"). Measurements only, no fixes:
 4. **Training data**: from train.csv the mean ``goal_share`` (overall and in the last quarter of the run); from
    episodes.csv the share of episodes that reach G after the first success and in the last quarter, and the share of
    episodes with a Smart Start guided phase.
+5. **Exploration before the first goal**: from episodes.csv (runs that log ``end_state`` and ``states_visited``),
+   over the training episodes that end before the first one that reaches G: the cells visited by then (coverage),
+   the median true (BFS) and Manhattan distance to G of the cells those episodes end in, and the median true
+   distance to G of their smart start states. An ε-greedy phase drawn towards G by a distance that ignores walls
+   ends near G in Manhattan terms but far from it in steps.
 
 The same numbers hold for a tabular run (its ``greedy_q_values`` knows only G, which is the only goal asked for here).
 
@@ -23,6 +28,7 @@ prints a markdown section per run and writes ``diagnosis.json`` (and ``diagnosis
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import math
 import sys
@@ -271,6 +277,53 @@ def training_data(run_dir: Path, total_env_steps: float | None = None) -> dict:
     return out
 
 
+# --- exploration before the first goal ---------------------------------------------------------------------------
+def _cell(text: str, maze: Maze, path: Path, line: int, column: str) -> int:
+    try:
+        row, col = (int(v) for v in text.split(":"))
+    except ValueError:
+        raise DiagnoseError(f"{path} line {line}: bad {column} value {text!r} (expected row:col)") from None
+    if not (0 <= row < maze.height and 0 <= col < maze.width):
+        raise DiagnoseError(f"{path} line {line}: {column} {text} lies outside the {maze.height}x{maze.width} maze")
+    return maze.cell((row, col))
+
+
+def _median(values: list[float]) -> float | None:
+    return float(np.median(values)) if values else None
+
+
+def exploration_before_first_goal(run_dir: Path, maze: Maze) -> dict:
+    """Point 5, from episodes.csv; ``note`` (and no numbers) for a run from before ``end_state`` was logged."""
+    path = Path(run_dir) / EPISODES_FILE
+    if not path.is_file():
+        return {"note": f"no {EPISODES_FILE}"}
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    if rows and ("end_state" not in rows[0] or "states_visited" not in rows[0]):
+        return {"note": f"{EPISODES_FILE} has no end_state/states_visited columns (a run from before they were logged)"}
+    dist = goal_distances(maze)
+    goal_row, goal_col = maze.goal
+    before, first_goal = [], None
+    for line, row in enumerate(rows, start=2):
+        if row["success"] == "1":
+            first_goal = int(row["env_steps"])
+            break
+        before.append((line, row))
+    ends = [_cell(r["end_state"], maze, path, line, "end_state") for line, r in before]
+    targets = [_cell(r["ss_target"], maze, path, line, "ss_target") for line, r in before if r["ss_target"]]
+    manhattan = [abs(e // maze.width - goal_row) + abs(e % maze.width - goal_col) for e in ends]
+    return {
+        "first_goal_env_step": first_goal,
+        "episodes": len(before),
+        "env_steps": int(before[-1][1]["env_steps"]) if before else 0,
+        "states_visited": int(before[-1][1]["states_visited"]) if before else 0,
+        "free_states": maze.n_free,
+        "end_true_distance_median": _median([float(dist[e]) for e in ends]),
+        "end_manhattan_distance_median": _median([float(m) for m in manhattan]),
+        "ss_target_true_distance_median": _median([float(dist[t]) for t in targets]),
+    }
+
+
 # --- one run ------------------------------------------------------------------------------------------------------
 def _summary(run_dir: Path) -> dict:
     path = run_dir / SUMMARY_FILE
@@ -317,6 +370,7 @@ def diagnose_run(run_dir: str | Path, width: int = 10) -> dict:
         "bucket_width": int(width),
         **diagnose_agent(agent, maze, gamma, int(cfg.env.max_steps), width),
         "training": training_data(run_dir, total),
+        "exploration": exploration_before_first_goal(run_dir, maze),
     }
 
 
@@ -446,6 +500,21 @@ def format_markdown(d: dict) -> str:
             f"- Share of episodes with a Smart Start guided phase: {_f(t['smart_start_share'])} overall, "
             f"{_f(t['smart_start_share_last_quarter'])} in the last quarter."
         )
+    x = d["exploration"]
+    lines += ["", "### Exploration before the first goal", ""]
+    if "note" in x:
+        lines.append(f"- {x['note']}.")
+    else:
+        reached = (
+            "never reached" if x["first_goal_env_step"] is None else f"first reached at {x['first_goal_env_step']}"
+        )
+        lines += [
+            f"- G {reached} env steps; the {x['episodes']} training episodes before it ({x['env_steps']} env steps) "
+            f"visited {x['states_visited']} of the {x['free_states']} free cells.",
+            f"- The cells they end in lie a median {_f(x['end_true_distance_median'], 'g')} steps from G "
+            f"({_f(x['end_manhattan_distance_median'], 'g')} in Manhattan distance); their smart start states a "
+            f"median {_f(x['ss_target_true_distance_median'], 'g')} steps.",
+        ]
     return "\n".join(lines) + "\n"
 
 
