@@ -28,7 +28,6 @@ TINY = [
 #: Overrides that turn off every target that reads the count model, for a DQNAgent built without one.
 NO_COUNT_MODEL = [
     "agent.distance_ceiling=false",
-    "agent.ceiling_needs_route=false",
     "agent.distance_floor=false",
     "agent.bound_all_actions=false",
     "agent.model_targets=false",

@@ -238,13 +238,6 @@ def test_bound_all_actions_needs_a_distance_bound():
     assert_config_error(compose_cfg(overrides=["agent.model_targets=1"]), "agent.model_targets", "1")
 
 
-def test_ceiling_needs_route_needs_the_ceiling():
-    with pytest.raises(ConfigError, match=r"^agent.ceiling_needs_route: needs agent.distance_ceiling$"):
-        validate_config(compose_cfg(overrides=["agent.ceiling_needs_route=true", "agent.distance_ceiling=false"]))
-    validate_config(compose_cfg(overrides=["agent.ceiling_needs_route=true", "agent.distance_ceiling=true"]))
-    assert_config_error(compose_cfg(overrides=["agent.ceiling_needs_route=1"]), "agent.ceiling_needs_route", "1")
-
-
 @pytest.mark.parametrize("lr_end", ["0", "-0.001", "fast"])
 def test_lr_end_must_be_a_positive_number(lr_end):
     assert_config_error(compose_cfg(overrides=[f"agent.lr_end={lr_end}"]), "agent.lr_end", lr_end)

@@ -453,45 +453,6 @@ def test_distance_ceiling_caps_only_the_targets_for_g_above_it():
     torch.testing.assert_close(forward(seen[0])["loss"], ((pred - y) ** 2).mean())
 
 
-@pytest.mark.parametrize("all_actions", [False, True], ids=["taken_action", "every_action"])
-def test_ceiling_needs_route_lifts_the_ceiling_where_no_observed_route_leads_to_g(all_actions):
-    """With ``agent.ceiling_needs_route`` the ceiling holds for G only at the states the count model has an observed
-    route from: before any route, at none (every bound +inf); with one shortest route S ... G seen, at the route's
-    cells (route[:-1], by hand) exactly, where it equals the plain ceiling (checked by hand in the test above), and
-    +inf at every other state. Samples for other goals keep +inf. With ``bound_all_actions`` the same holds for
-    every action of the state."""
-    maze = load_maze("easy_small")
-    overrides = ["agent.step_cost=1", "agent.gamma=1", "agent.distance_ceiling=true", "agent.double_dqn=false"]
-    if all_actions:
-        overrides.append("agent.bound_all_actions=true")
-    key = "action_ceiling" if all_actions else "target_ceiling"
-    batch = random_batch(maze.n_cells)
-    counts, route, moves = route_counts(maze)
-    on_route = torch.arange(64) % 2 == 0
-    i = torch.arange(64) % len(moves)
-    batch.set("observation", torch.where(on_route, torch.tensor(route[:-1])[i], batch["observation"]))
-    for_g = torch.arange(64) % 4 != 3  # three quarters of the batch for G, on the route and off it
-    batch.set("desired_goal", torch.where(for_g, maze.goal_cell, batch["desired_goal"]))
-    batch.set(("next", "desired_goal"), batch["desired_goal"])
-
-    empty = make_agent(*overrides, "agent.ceiling_needs_route=true", counts=CountModel(maze.n_cells))
-    seen, _ = update_on(empty, batch)
-    assert bool(torch.isinf(seen[0][key]).all()) and bool((seen[0][key] > 0).all())
-
-    routed = torch.tensor([s in set(route[:-1]) for s in batch["observation"].tolist()])
-    assert bool(routed[on_route].all()) and not bool(routed.all())
-    plain, _ = update_on(make_agent(*overrides, counts=counts), batch)
-    gated, _ = update_on(make_agent(*overrides, "agent.ceiling_needs_route=true", counts=counts), batch)
-    expected = torch.where(routed.unsqueeze(-1), plain[0][key], torch.tensor(torch.inf))
-    assert bool(torch.isfinite(expected[routed & for_g]).all())
-    torch.testing.assert_close(gated[0][key], expected)
-
-
-def test_ceiling_needs_route_needs_the_ceiling():
-    with pytest.raises(ValueError, match="agent.ceiling_needs_route needs agent.distance_ceiling"):
-        make_agent("agent.ceiling_needs_route=true", counts=CountModel(load_maze("easy_small").n_cells))
-
-
 def test_distance_ceiling_refuses_an_agent_without_the_count_model():
     with pytest.raises(ValueError, match="count model"):
         make_agent("agent.distance_ceiling=true")

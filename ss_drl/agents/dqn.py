@@ -306,13 +306,6 @@ class DQNAgent:
             self.distance_ceiling = DistanceCeiling(counts, maze.height, maze.width, maze.goal_cell)
         if cfg.get("distance_floor", False):
             self.distance_floor = DistanceFloor(counts, maze.goal_cell)
-        # ceiling_needs_route: the ceiling holds for G only at states the count model has an observed route from.
-        self.ceiling_needs_route = bool(cfg.get("ceiling_needs_route", False))
-        self._routes: DistanceFloor | None = None
-        if self.ceiling_needs_route:
-            if self.distance_ceiling is None:
-                raise ValueError("agent.ceiling_needs_route needs agent.distance_ceiling")
-            self._routes = self.distance_floor or DistanceFloor(counts, maze.goal_cell)
         # bound_all_actions: the floor and ceiling hold every action of a sampled state for G, not the taken one alone.
         self.bound_all_actions = bool(cfg.get("bound_all_actions", False))
         # model_targets: every other action of a sampled state that the count model has seen gets a one-step target.
@@ -428,15 +421,8 @@ class DQNAgent:
     def ceiling(self, sample: TensorDictBase, all_actions: bool = False) -> torch.Tensor:
         """(B, 1) the distance ceiling on each sample's target: for the real goal G, the value of entering it after
         the fewest steps from (s_t, a_t) that the count model cannot rule out (:class:`DistanceCeiling`); +inf for
-        other goals, and with ``agent.ceiling_needs_route`` for states with no observed route to G. With
-        ``all_actions``, (B, A): the ceiling of every action of s_t."""
-        bound = self._bound_for_g(sample, self.distance_ceiling.steps(), torch.inf, all_actions)
-        if self._routes is None:
-            return bound
-        # agent.ceiling_needs_route: no ceiling at a state with no observed route to G (before G is first entered,
-        # at none), so the optimistic distance does not pull the collection policy through walls it has not tried.
-        routed = self._routes.routed()[sample.get("observation").reshape(-1)].reshape(-1, 1)
-        return torch.where(routed, bound, torch.full_like(bound, torch.inf))
+        other goals. With ``all_actions``, (B, A): the ceiling of every action of s_t."""
+        return self._bound_for_g(sample, self.distance_ceiling.steps(), torch.inf, all_actions)
 
     def floor(self, sample: TensorDictBase, all_actions: bool = False) -> torch.Tensor:
         """(B, 1) the distance floor on each sample's target: for the real goal G, the value of entering it after the

@@ -129,7 +129,6 @@ class DistanceFloor:
         self.counts, self.goal = counts, int(goal)
         self._keys: torch.Tensor | None = None  # the key array the steps below were computed from
         self._steps: torch.Tensor | None = None
-        self._routed: torch.Tensor | None = None
 
     def distances(self) -> np.ndarray:
         """(S,) d_known: the fewest observed transitions from each cell into the goal; 0 at the goal, -1 where no
@@ -168,15 +167,5 @@ class DistanceFloor:
             known = keys.numpy()
             d = dist[known % n]
             steps[known[d >= 0] // n] = 1 + d[d >= 0]
-        routed = np.zeros(n, dtype=bool)
-        if keys.numel():
-            routed[dist > 0] = True
         self._keys, self._steps = keys, torch.from_numpy(steps).to(torch.float32)
-        self._routed = torch.from_numpy(routed)
         return self._steps
-
-    def routed(self) -> torch.Tensor:
-        """(S,) bool: the cells other than the goal with an observed route into it (d_known > 0); before the goal
-        is first entered, none."""
-        self.steps()
-        return self._routed

@@ -135,8 +135,6 @@ def validate_config(cfg: DictConfig) -> None:
         _boolean(cfg, "agent.distance_ceiling")
         _boolean(cfg, "agent.distance_floor")
         _boolean(cfg, "agent.model_targets")
-        if _boolean(cfg, "agent.ceiling_needs_route") and not _get(cfg, "agent.distance_ceiling"):
-            raise ConfigError("agent.ceiling_needs_route: needs agent.distance_ceiling")
         if _boolean(cfg, "agent.bound_all_actions") and not (
             _get(cfg, "agent.distance_floor") or _get(cfg, "agent.distance_ceiling")
         ):
