@@ -27,6 +27,7 @@ OPTIONS = (
     "distance_floor",
     "bound_all_actions",
     "model_targets",
+    "optimistic_floor",
 )
 
 

@@ -31,6 +31,7 @@ NO_COUNT_MODEL = [
     "agent.distance_floor=false",
     "agent.bound_all_actions=false",
     "agent.model_targets=false",
+    "agent.optimistic_floor=false",
 ]
 
 #: The spec: steps on a shortest S -> G path of every shipped maze.

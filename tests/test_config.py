@@ -238,6 +238,27 @@ def test_bound_all_actions_needs_a_distance_bound():
     assert_config_error(compose_cfg(overrides=["agent.model_targets=1"]), "agent.model_targets", "1")
 
 
+def test_optimistic_floor_needs_both_distance_bounds():
+    for missing in ("agent.distance_floor", "agent.distance_ceiling"):
+        with pytest.raises(ConfigError, match=r"^agent.optimistic_floor: needs agent.distance_floor and"):
+            validate_config(
+                compose_cfg(
+                    overrides=[
+                        "agent.optimistic_floor=true",
+                        "agent.distance_floor=true",
+                        "agent.distance_ceiling=true",
+                        f"{missing}=false",
+                    ]
+                )
+            )
+    validate_config(
+        compose_cfg(
+            overrides=["agent.optimistic_floor=true", "agent.distance_floor=true", "agent.distance_ceiling=true"]
+        )
+    )
+    assert_config_error(compose_cfg(overrides=["agent.optimistic_floor=on"]), "agent.optimistic_floor", "on")
+
+
 @pytest.mark.parametrize("lr_end", ["0", "-0.001", "fast"])
 def test_lr_end_must_be_a_positive_number(lr_end):
     assert_config_error(compose_cfg(overrides=[f"agent.lr_end={lr_end}"]), "agent.lr_end", lr_end)

@@ -778,3 +778,93 @@ def test_model_targets_refuse_a_stochastic_model():
     agent.replay_buffer.sample = lambda: random_batch(maze.n_cells)
     with pytest.raises(ValueError, match="deterministic"):
         agent.update()
+
+
+# --- the ceiling where no route is known (agent.optimistic_floor) ----------------------------------------------------
+@pytest.mark.parametrize("known", ["half_route", "whole_route"])
+def test_optimistic_floor_makes_the_ceiling_the_target_where_no_route_is_known_by_hand(known):
+    """The count model has seen the first half of a shortest route S ... G on easy_small (no route into G yet, and
+    no wall), or the whole route. For a sample for G at route cell s_j, per action a: the ceiling is the value of
+    entering G after 1 + |s' - G|_1 steps, -|s' - G|_1 (s' = s_{j+1} for the route's move; for an untried move the
+    nearer of the neighbour and s itself, s alone where the move leaves the grid); the floor is the known route's
+    -(steps left - 1) where the whole route has been seen and a is its move, and everywhere else (no observed
+    route) the ceiling itself. So with every prediction and bootstrap pushed far below (value biases at -100) the
+    taken action's target and every other action's held value are the ceiling, or the route's floor on the
+    route. Samples for other goals get neither bound."""
+    maze = load_maze("easy_small")
+    counts, route, moves = route_counts(maze)
+    half = len(moves) // 2
+    if known == "half_route":
+        counts = CountModel(maze.n_cells)
+        counts.update(
+            torch.tensor(route[:half]), torch.tensor(moves[:half]), torch.tensor(route[1 : half + 1]), torch.zeros(half)
+        )
+    agent = make_agent(
+        "agent.step_cost=1",
+        "agent.gamma=1",
+        "agent.distance_floor=true",
+        "agent.distance_ceiling=true",
+        "agent.bound_all_actions=true",
+        "agent.optimistic_floor=true",
+        "agent.double_dqn=false",
+        counts=counts,
+    )
+    with torch.no_grad():
+        agent.q_network.value.bias.fill_(-100.0)
+        agent.loss.target_value_network.network.value.bias.fill_(-100.0)
+    batch = random_batch(maze.n_cells)
+    batch.set(("next", "terminated"), torch.zeros(64, 1, dtype=torch.bool))
+    i = torch.arange(64) % half  # cells of the route's first half: seen in either model
+    batch.set("observation", torch.tensor(route[:-1])[i])
+    batch.set("action", torch.tensor(moves)[i])  # the route's move, the one the model has seen
+    batch.set(("next", "observation"), torch.tensor(route[1:])[i])
+    for_g = torch.arange(64) % 4 != 3
+    batch.set("desired_goal", torch.where(for_g, maze.goal_cell, batch["desired_goal"]))
+    batch.set(("next", "desired_goal"), batch["desired_goal"])
+    seen, forward = update_on(agent, batch)
+
+    manhattan = partial(manhattan_to_goal, maze)
+    inf = float("inf")
+    floors, ceilings = [], []
+    for j, g in zip(i.tolist(), for_g.tolist()):
+        s = route[j]
+        r, c = divmod(s, maze.width)
+        floor, ceiling = [], []
+        for a, (dr, dc) in enumerate(((0, 1), (1, 0), (0, -1), (-1, 0))):
+            if a == moves[j]:
+                top = -float(manhattan(route[j + 1]))
+                floor.append(-(len(moves) - j - 1.0) if known == "whole_route" else top)
+            else:
+                inside = 0 <= r + dr < maze.height and 0 <= c + dc < maze.width
+                top = -float(min(manhattan(s), manhattan((r + dr) * maze.width + c + dc)) if inside else manhattan(s))
+                floor.append(top)  # untried: no observed route, so the ceiling
+            ceiling.append(top)
+        floors.append(floor if g else [-inf] * 4)
+        ceilings.append(ceiling if g else [inf] * 4)
+    floors, ceilings = torch.tensor(floors), torch.tensor(ceilings)
+    rows, taken = torch.arange(64), batch["action"]
+    torch.testing.assert_close(seen[0]["action_floor"], floors)
+    torch.testing.assert_close(seen[0]["action_ceiling"], ceilings)
+    torch.testing.assert_close(seen[0]["target_floor"], floors[rows, taken].unsqueeze(-1))
+    if known == "half_route":  # no route into G: floor and ceiling meet on every action for G
+        assert torch.equal(floors[for_g], ceilings[for_g])
+    else:  # the route's floor lies below its ceiling (the route is longer than |s - G|_1 somewhere)
+        assert bool((floors[rows, taken][for_g] < ceilings[rows, taken][for_g]).any())
+    with torch.no_grad():
+        q = agent.q_network(batch["observation"], batch["desired_goal"])
+        bootstrap = agent.loss.target_value_network(batch["next", "observation"], batch["desired_goal"]).max(-1).values
+        y = batch["next", "reward"].squeeze(-1) - 1 + bootstrap
+        assert bool((y < -50).all())  # every TD target far below its bounds, so the bounds decide
+        y = torch.minimum(torch.maximum(y, floors[rows, taken]), ceilings[rows, taken]).clamp(-1000, 0)
+        td = ((q[rows, taken] - y) ** 2).mean()
+        held = torch.minimum(torch.maximum(q, floors), ceilings).clamp(-1000, 0)
+        others = torch.ones(64, 4, dtype=torch.bool)
+        others[rows, taken] = False
+        outside = ((q - held) ** 2 * others).sum(-1).mean()
+    torch.testing.assert_close(forward(seen[0])["loss"], td + outside)
+
+
+def test_optimistic_floor_refuses_an_agent_without_both_distance_bounds():
+    maze = load_maze("easy_small")
+    with pytest.raises(ValueError, match="optimistic_floor needs"):
+        make_agent("agent.optimistic_floor=true", "agent.distance_floor=true", counts=CountModel(maze.n_cells))

@@ -315,6 +315,11 @@ class DQNAgent:
         self.counts = counts
         if self.bound_all_actions and self.distance_floor is None and self.distance_ceiling is None:
             raise ValueError("agent.bound_all_actions needs agent.distance_floor or agent.distance_ceiling")
+        # optimistic_floor: where the count model knows no route into G, the floor is the ceiling (see floor()).
+        self.optimistic_floor = bool(cfg.get("optimistic_floor", False))
+        if self.optimistic_floor and (self.distance_floor is None or self.distance_ceiling is None):
+            raise ValueError("agent.optimistic_floor needs agent.distance_floor and agent.distance_ceiling")
+        self._optimistic: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None  # (floor, ceiling, merged)
         self.eval_network = cfg.get("eval_network", "online")
         # eval_network: average. A Polyak average of the online network at rate eval_tau for the greedy policy alone,
         # average <- (1 - eval_tau) average + eval_tau online after every optimizer step, from the initial weights
@@ -428,8 +433,20 @@ class DQNAgent:
         """(B, 1) the distance floor on each sample's target: for the real goal G, the value of entering it after the
         fewest steps from (s_t, a_t) along transitions the count model has observed (:class:`DistanceFloor`); -inf
         for other goals and where no observed route leads to G. With ``all_actions``, (B, A): the floor of every
-        action of s_t."""
-        return self._bound_for_g(sample, self.distance_floor.steps(), -torch.inf, all_actions)
+        action of s_t.
+
+        With ``agent.optimistic_floor``, where no observed route leads from (s_t, a_t) to G the floor is the
+        ceiling's value instead of -inf, so the target for G there *is* the ceiling: the value of the fewest steps
+        the count model cannot rule out (optimism in the face of uncertainty, with every cell not yet seen to be a
+        wall taken as free). Before the first goal the greedy policy for G then heads for G through the cells
+        not yet known, and an action not yet tried keeps that optimistic value until it is."""
+        steps = self.distance_floor.steps()
+        if self.optimistic_floor:
+            ceiling, cached = self.distance_ceiling.steps(), self._optimistic
+            if cached is None or cached[0] is not steps or cached[1] is not ceiling:  # both cached until a new key
+                self._optimistic = cached = (steps, ceiling, torch.where(steps > 0, steps, ceiling))
+            steps = cached[2]
+        return self._bound_for_g(sample, steps, -torch.inf, all_actions)
 
     @property
     def learning_rate(self) -> float:

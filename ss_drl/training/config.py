@@ -139,6 +139,10 @@ def validate_config(cfg: DictConfig) -> None:
             _get(cfg, "agent.distance_floor") or _get(cfg, "agent.distance_ceiling")
         ):
             raise ConfigError("agent.bound_all_actions: needs agent.distance_floor or agent.distance_ceiling")
+        if _boolean(cfg, "agent.optimistic_floor") and not (
+            _get(cfg, "agent.distance_floor") and _get(cfg, "agent.distance_ceiling")
+        ):
+            raise ConfigError("agent.optimistic_floor: needs agent.distance_floor and agent.distance_ceiling")
         if _get(cfg, "agent.gamma") == 1 and _get(cfg, "agent.step_cost") == 0:
             raise ConfigError("agent.gamma: 1 needs agent.step_cost > 0 (undiscounted 0/1 rewards make every value 1)")
     # HER
