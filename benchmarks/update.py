@@ -48,6 +48,17 @@ SETTINGS = (
         "LCFAT",
         _setting("hindsight_bound", "distance_ceiling", "distance_floor", "bound_all_actions", "model_targets"),
     ),
+    (
+        "LCFATO",
+        _setting(
+            "hindsight_bound",
+            "distance_ceiling",
+            "distance_floor",
+            "bound_all_actions",
+            "model_targets",
+            "optimistic_floor",
+        ),
+    ),
 )
 
 

@@ -187,6 +187,7 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
             self.distance_floor is not None,
             self.bound_all_actions,
             self.model_targets,
+            self.optimistic_floor,
         )
         calls.append(on)
         return real_update(self)
@@ -195,15 +196,16 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
     repeats, sizes = 2, cli.QUICK_SIZES["update"]
     text = run_main(["--section", "update", "--quick", "--repeats", str(repeats)])
     (rows,) = tables(text)
-    assert [row["setting"] for row in rows] == ["J", "L", "LM", "LMC", "LCF", "LCFA", "LCFAT"]
+    assert [row["setting"] for row in rows] == ["J", "L", "LM", "LMC", "LCF", "LCFA", "LCFAT", "LCFATO"]
     expected_on = [
-        (False, False, False, False, False, False),
-        (True, False, False, False, False, False),
-        (True, True, False, False, False, False),
-        (True, True, True, False, False, False),
-        (True, False, True, True, False, False),
-        (True, False, True, True, True, False),
-        (True, False, True, True, True, True),
+        (False, False, False, False, False, False, False),
+        (True, False, False, False, False, False, False),
+        (True, True, False, False, False, False, False),
+        (True, True, True, False, False, False, False),
+        (True, False, True, True, False, False, False),
+        (True, False, True, True, True, False, False),
+        (True, False, True, True, True, True, False),
+        (True, False, True, True, True, True, True),
     ]
     for on, row in zip(expected_on, rows):
         assert calls.count(on) == 5 + repeats * sizes["updates"], row
@@ -218,6 +220,7 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
                         "distance_floor",
                         "bound_all_actions",
                         "model_targets",
+                        "optimistic_floor",
                     ),
                     on,
                 )
@@ -227,7 +230,7 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
         )
         assert number(row["ms per update"]) > 0
         assert_quotient(row["vs J"], row["ms per update"], rows[0]["ms per update"])
-    assert len(calls) == 7 * (5 + repeats * sizes["updates"])
+    assert len(calls) == 8 * (5 + repeats * sizes["updates"])
     assert f"on {sizes['maze']} ({sizes['transitions']:,} random-walk transitions stored" in text
 
 
