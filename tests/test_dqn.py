@@ -369,6 +369,20 @@ def manhattan_to_goal(maze, cell: int) -> int:
     return abs(r - gr) + abs(c - gc)
 
 
+def untried_ceilings(maze, cell: int) -> list[float]:
+    """Per action, the distance ceiling's value of an untried move from ``cell`` when no wall is known: entering G
+    after 1 + min(|cell - G|_1, |neighbour - G|_1) steps (the move's cell itself if it leaves the grid)."""
+    r, c = divmod(cell, maze.width)
+    values = []
+    for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0)):
+        inside = 0 <= r + dr < maze.height and 0 <= c + dc < maze.width
+        near = manhattan_to_goal(maze, cell)
+        if inside:
+            near = min(near, manhattan_to_goal(maze, (r + dr) * maze.width + c + dc))
+        values.append(-float(near))
+    return values
+
+
 def update_on(agent, batch: TensorDict) -> tuple[list[TensorDict], object]:
     """One agent update on ``batch`` as its sample; returns what its loss saw and the loss's own forward."""
     seen, forward = capture_loss_input(agent)
@@ -659,18 +673,9 @@ def test_bound_all_actions_holds_every_action_of_a_state_for_g_by_hand(bias):
     inf = float("inf")
     floors, ceilings = [], []
     for j, g in zip(i.tolist(), for_g.tolist()):
-        s = route[j]
-        r, c = divmod(s, maze.width)
-        floor, ceiling = [], []
-        for a, (dr, dc) in enumerate(((0, 1), (1, 0), (0, -1), (-1, 0))):
-            if a == moves[j]:
-                floor.append(-(len(moves) - j - 1.0))
-                ceiling.append(-float(manhattan(route[j + 1])))
-            else:
-                inside = 0 <= r + dr < maze.height and 0 <= c + dc < maze.width
-                near = min(manhattan(s), manhattan((r + dr) * maze.width + c + dc)) if inside else manhattan(s)
-                floor.append(-inf)
-                ceiling.append(-float(near))
+        floor, ceiling = [-inf] * 4, untried_ceilings(maze, route[j])
+        floor[moves[j]] = -(len(moves) - j - 1.0)
+        ceiling[moves[j]] = -float(manhattan(route[j + 1]))
         floors.append(floor if g else [-inf] * 4)
         ceilings.append(ceiling if g else [inf] * 4)
     floors, ceilings = torch.tensor(floors), torch.tensor(ceilings)
@@ -827,18 +832,11 @@ def test_optimistic_floor_makes_the_ceiling_the_target_where_no_route_is_known_b
     inf = float("inf")
     floors, ceilings = [], []
     for j, g in zip(i.tolist(), for_g.tolist()):
-        s = route[j]
-        r, c = divmod(s, maze.width)
-        floor, ceiling = [], []
-        for a, (dr, dc) in enumerate(((0, 1), (1, 0), (0, -1), (-1, 0))):
-            if a == moves[j]:
-                top = -float(manhattan(route[j + 1]))
-                floor.append(-(len(moves) - j - 1.0) if known == "whole_route" else top)
-            else:
-                inside = 0 <= r + dr < maze.height and 0 <= c + dc < maze.width
-                top = -float(min(manhattan(s), manhattan((r + dr) * maze.width + c + dc)) if inside else manhattan(s))
-                floor.append(top)  # untried: no observed route, so the ceiling
-            ceiling.append(top)
+        ceiling = untried_ceilings(maze, route[j])
+        ceiling[moves[j]] = -float(manhattan(route[j + 1]))
+        floor = list(ceiling)  # no observed route from an untried move, nor from the route's before the whole is seen
+        if known == "whole_route":
+            floor[moves[j]] = -(len(moves) - j - 1.0)
         floors.append(floor if g else [-inf] * 4)
         ceilings.append(ceiling if g else [inf] * 4)
     floors, ceilings = torch.tensor(floors), torch.tensor(ceilings)
