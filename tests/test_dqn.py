@@ -383,6 +383,32 @@ def untried_ceilings(maze, cell: int) -> list[float]:
     return values
 
 
+def route_batch(maze, cells: torch.Tensor, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor]:
+    """A batch of 64 non-terminal samples at ``cells`` taking ``actions``, three in four for G (the rest keep the
+    random goal of :func:`random_batch`); the batch and the mask of G's samples."""
+    batch = random_batch(maze.n_cells)
+    batch.set(("next", "terminated"), torch.zeros(64, 1, dtype=torch.bool))
+    batch.set("observation", cells)
+    batch.set("action", actions)
+    for_g = torch.arange(64) % 4 != 3
+    batch.set("desired_goal", torch.where(for_g, maze.goal_cell, batch["desired_goal"]))
+    batch.set(("next", "desired_goal"), batch["desired_goal"])
+    return batch, for_g
+
+
+def bounded_loss(q, y, floors, ceilings, taken) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``agent.bound_all_actions``'s loss by hand: the TD loss of the taken action against its target ``y`` held
+    into its bounds, and the squared distance of every other action to its prediction held into its bounds. Returns
+    the TD loss, the other actions' term and their mask."""
+    rows = torch.arange(q.shape[0])
+    y = torch.minimum(torch.maximum(y, floors[rows, taken]), ceilings[rows, taken])
+    td = ((q[rows, taken] - y) ** 2).mean()
+    others = torch.ones_like(q, dtype=torch.bool)
+    others[rows, taken] = False
+    outside = ((q - torch.minimum(torch.maximum(q, floors), ceilings)) ** 2 * others).sum(-1).mean()
+    return td, outside, others
+
+
 def update_on(agent, batch: TensorDict) -> tuple[list[TensorDict], object]:
     """One agent update on ``batch`` as its sample; returns what its loss saw and the loss's own forward."""
     seen, forward = capture_loss_input(agent)
@@ -658,14 +684,9 @@ def test_bound_all_actions_holds_every_action_of_a_state_for_g_by_hand(bias):
     )
     with torch.no_grad():
         agent.q_network.value.bias.fill_(bias)
-    batch = random_batch(maze.n_cells)
-    batch.set(("next", "terminated"), torch.zeros(64, 1, dtype=torch.bool))
     i = torch.arange(64) % len(moves)
-    batch.set("observation", torch.tensor(route[:-1])[i])
-    batch.set("action", torch.randint(4, (64,), generator=torch.Generator().manual_seed(1)))
-    for_g = torch.arange(64) % 4 != 3
-    batch.set("desired_goal", torch.where(for_g, maze.goal_cell, batch["desired_goal"]))
-    batch.set(("next", "desired_goal"), batch["desired_goal"])
+    actions = torch.randint(4, (64,), generator=torch.Generator().manual_seed(1))
+    batch, for_g = route_batch(maze, torch.tensor(route[:-1])[i], actions)
     seen, forward = update_on(agent, batch)
 
     manhattan = partial(manhattan_to_goal, maze)
@@ -685,15 +706,8 @@ def test_bound_all_actions_holds_every_action_of_a_state_for_g_by_hand(bias):
         nxt = batch["next"]
         bootstrap = agent.loss.target_value_network(nxt["observation"], nxt["desired_goal"]).max(-1).values
         y = nxt["reward"].squeeze(-1) - 1 + bootstrap
-        rows = torch.arange(64)
-        y = torch.maximum(y, floors[rows, batch["action"]])
-        y = torch.minimum(y, ceilings[rows, batch["action"]])
         q = agent.q_network(batch["observation"], batch["desired_goal"])
-        td = ((q[rows, batch["action"]] - y) ** 2).mean()
-        held = torch.minimum(torch.maximum(q, floors), ceilings)
-        others = torch.ones(64, 4, dtype=torch.bool)
-        others[rows, batch["action"]] = False
-        outside = ((q - held) ** 2 * others).sum(-1).mean()
+        td, outside, others = bounded_loss(q, y, floors, ceilings, batch["action"])
         if bias > 0:  # every prediction for G above its ceiling: each of the other actions adds its distance
             assert bool((q[for_g] > ceilings[for_g]).all())
         else:  # every prediction below its finite floors: only the route's moves have one
@@ -817,15 +831,10 @@ def test_optimistic_floor_makes_the_ceiling_the_target_where_no_route_is_known_b
     with torch.no_grad():
         agent.q_network.value.bias.fill_(-100.0)
         agent.loss.target_value_network.network.value.bias.fill_(-100.0)
-    batch = random_batch(maze.n_cells)
-    batch.set(("next", "terminated"), torch.zeros(64, 1, dtype=torch.bool))
     i = torch.arange(64) % half  # cells of the route's first half: seen in either model
-    batch.set("observation", torch.tensor(route[:-1])[i])
-    batch.set("action", torch.tensor(moves)[i])  # the route's move, the one the model has seen
+    # the route's move, the one the model has seen
+    batch, for_g = route_batch(maze, torch.tensor(route[:-1])[i], torch.tensor(moves)[i])
     batch.set(("next", "observation"), torch.tensor(route[1:])[i])
-    for_g = torch.arange(64) % 4 != 3
-    batch.set("desired_goal", torch.where(for_g, maze.goal_cell, batch["desired_goal"]))
-    batch.set(("next", "desired_goal"), batch["desired_goal"])
     seen, forward = update_on(agent, batch)
 
     manhattan = partial(manhattan_to_goal, maze)
@@ -853,12 +862,7 @@ def test_optimistic_floor_makes_the_ceiling_the_target_where_no_route_is_known_b
         bootstrap = agent.loss.target_value_network(batch["next", "observation"], batch["desired_goal"]).max(-1).values
         y = batch["next", "reward"].squeeze(-1) - 1 + bootstrap
         assert bool((y < -50).all())  # every TD target far below its bounds, so the bounds decide
-        y = torch.minimum(torch.maximum(y, floors[rows, taken]), ceilings[rows, taken]).clamp(-1000, 0)
-        td = ((q[rows, taken] - y) ** 2).mean()
-        held = torch.minimum(torch.maximum(q, floors), ceilings).clamp(-1000, 0)
-        others = torch.ones(64, 4, dtype=torch.bool)
-        others[rows, taken] = False
-        outside = ((q - held) ** 2 * others).sum(-1).mean()
+        td, outside, _ = bounded_loss(q, y, floors, ceilings, taken)
     torch.testing.assert_close(forward(seen[0])["loss"], td + outside)
 
 
