@@ -1,9 +1,10 @@
 """The ``update`` section: ms per ``DQNAgent.update()`` under each of the TD-target options of issue 12, side by side.
 
 The settings are the stages of ``docs/long_horizons.md``: J (no bound), L (J + ``agent.hindsight_bound``), LM (L +
-``agent.n_step_max``, stage 10, the default), LMC (LM + ``agent.distance_ceiling``), LCF (L + ``agent.distance_ceiling``
-+ ``agent.distance_floor``, stage 12), LCFA (LCF + ``agent.bound_all_actions``, stage 14) and LCFAT (LCFA +
-``agent.model_targets``, stage 15). Each agent is built as the trainer builds it (``make_agent``) and gets the same
+``agent.n_step_max``, stage 10, the default until session 19), LMC (LM + ``agent.distance_ceiling``), LCF (L +
+``agent.distance_ceiling`` + ``agent.distance_floor``, stage 12), LCFA (LCF + ``agent.bound_all_actions``, stage 14),
+LCFAT (LCFA + ``agent.model_targets``, stage 15) and LCFATO (LCFAT + ``agent.optimistic_floor``, stage 20, the
+default). Each agent is built as the trainer builds it (``make_agent``) and gets the same
 replay data: random-walk episodes on the maze, with real moves and G terminal, which a count model also counts (the
 distance ceiling and floor read it; it does not grow here, so their searches run once, in the warm-up). The settings are
 timed in turn within each repeat, so the machine's load falls on all of them alike; the table gives the median ms per

@@ -231,7 +231,12 @@ def test_bound_all_actions_needs_a_distance_bound():
         )
     validate_config(
         compose_cfg(
-            overrides=["agent.bound_all_actions=true", "agent.distance_floor=true", "agent.distance_ceiling=false"]
+            overrides=[
+                "agent.bound_all_actions=true",
+                "agent.distance_floor=true",
+                "agent.distance_ceiling=false",
+                "agent.optimistic_floor=false",  # it needs both bounds
+            ]
         )
     )
     assert_config_error(compose_cfg(overrides=["agent.bound_all_actions=yes"]), "agent.bound_all_actions", "yes")

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from helpers import NO_COUNT_MODEL
 from hydra import compose, initialize_config_dir
 
 from ss_drl.envs.maze import load_maze
@@ -21,12 +22,12 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "options",
-    [[], ["agent.distance_ceiling=true"], ["agent.distance_floor=true"]],
-    ids=["default", "distance_ceiling", "distance_floor"],
+    [[], ["agent.distance_floor=false", "agent.optimistic_floor=false"], ["agent.n_step_max=true", *NO_COUNT_MODEL]],
+    ids=["default", "distance_ceiling", "LM"],
 )
 def test_evaluate_reproduces_the_final_greedy_evaluation(tmp_path, options):
-    """Also for an agent that reads the count model (agent.distance_ceiling, agent.distance_floor): the checkpoint's
-    counts are loaded."""
+    """For the default agent, which reads the count model (agent.distance_ceiling, agent.distance_floor: the
+    checkpoint's counts are loaded), one with the ceiling alone, and LM, which reads neither."""
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose(
             "config",
