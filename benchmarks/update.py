@@ -2,13 +2,14 @@
 
 The settings are the stages of ``docs/long_horizons.md``: J (no bound), L (J + ``agent.hindsight_bound``), LM (L +
 ``agent.n_step_max``, stage 10, the default until session 19), LMC (LM + ``agent.distance_ceiling``), LCF (L +
-``agent.distance_ceiling`` + ``agent.distance_floor``, stage 12), LCFA (LCF + ``agent.bound_all_actions``, stage 14),
-LCFAT (LCFA + ``agent.model_targets``, stage 15) and LCFATO (LCFAT + ``agent.optimistic_floor``, stage 20, the
-default). Each agent is built as the trainer builds it (``make_agent``) and gets the same
-replay data: random-walk episodes on the maze, with real moves and G terminal, which a count model also counts (the
-distance ceiling and floor read it; it does not grow here, so their searches run once, in the warm-up). The settings are
-timed in turn within each repeat, so the machine's load falls on all of them alike; the table gives the median ms per
-update and the ratio to J's median.
+``agent.distance_ceiling`` + ``agent.distance_floor``, stage 12), LCFA (LCF + ``agent.bound_all_actions``, stage
+14), LCFAT (LCFA + ``agent.model_targets``, stage 15) and LCFATO (LCFAT + ``agent.optimistic_floor``, stage 20, the
+default), and LCFATO once more with its target network stepped by TorchRL's ``SoftUpdate`` instead of ss-drl's
+``PolyakUpdate`` (the same arithmetic; what the fused lerp saves). Each agent is built as the trainer builds it
+(``make_agent``) and gets the same replay data: random-walk episodes on the maze, with real moves and G terminal,
+which a count model also counts (the distance ceiling and floor read it; it does not grow here, so their searches
+run once, in the warm-up). The settings are timed in turn within each repeat, so the machine's load falls on all of
+them alike; the table gives the median ms per update and the ratio to J's median.
 """
 
 from __future__ import annotations
@@ -105,6 +106,8 @@ def bench_update(
 ) -> str:
     """ms per update of each setting in :data:`SETTINGS` on ``maze`` (median over repeats of the mean of
     ``updates`` updates), and its ratio to the first setting's."""
+    from torchrl.objectives import SoftUpdate
+
     from ss_drl.envs.maze import load_maze
     from ss_drl.smart_start import CountModel
     from ss_drl.training.trainer import make_agent
@@ -122,6 +125,15 @@ def bench_update(
         for _ in range(5):  # warm-up (and the ceiling's first BFS)
             agent.update()
         agents[name] = agent
+    # The default again, its target stepped by TorchRL's SoftUpdate instead of ss-drl's PolyakUpdate (same result).
+    reference = SETTINGS[-1][0] + ", TorchRL SoftUpdate"
+    torch.manual_seed(0)
+    agent = make_agent(cfg, layout, 0, agents[SETTINGS[-1][0]].counts)
+    agent.target_updater = SoftUpdate(agent.loss, tau=float(cfg.agent.tau))
+    agent.store(data.clone())
+    for _ in range(5):
+        agent.update()
+    agents[reference] = agent
     times: dict[str, list[float]] = {name: [] for name in agents}
     for _ in range(repeats):
         for name, agent in agents.items():
@@ -135,6 +147,8 @@ def bench_update(
         on = [o.split("=")[0].removeprefix("agent.") for o in overrides if o.endswith("=true")]
         ms = median(times[name])
         rows.append([name, ", ".join(on) or "none", fmt_ms(ms), f"{ms / base:.2f}x"])
+    ms = median(times[reference])
+    rows.append([reference, "as " + SETTINGS[-1][0], fmt_ms(ms), f"{ms / base:.2f}x"])
     return "\n".join(
         [
             f"## update: ms per DQNAgent.update() on {maze} ({transitions:,} random-walk transitions stored, batch "

@@ -173,7 +173,8 @@ def test_her_section_quick_times_the_stated_samples(monkeypatch):
 
 def test_update_section_quick_times_the_stated_updates(monkeypatch):
     """Every setting of the section is an agent with its options on, and each is timed for the same number of
-    updates (5 warm-up ones first); the ratios are the printed medians' quotients."""
+    updates (5 warm-up ones first); the ratios are the printed medians' quotients. The last row is the default
+    setting again with TorchRL's SoftUpdate stepping its target network in place of ss-drl's PolyakUpdate."""
     from ss_drl.agents.dqn import DQNAgent
 
     calls = []
@@ -189,14 +190,15 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
             self.model_targets,
             self.optimistic_floor,
         )
-        calls.append(on)
+        calls.append((on, type(self.target_updater).__name__))
         return real_update(self)
 
     monkeypatch.setattr(DQNAgent, "update", counted)
     repeats, sizes = 2, cli.QUICK_SIZES["update"]
     text = run_main(["--section", "update", "--quick", "--repeats", str(repeats)])
     (rows,) = tables(text)
-    assert [row["setting"] for row in rows] == ["J", "L", "LM", "LMC", "LCF", "LCFA", "LCFAT", "LCFATO"]
+    names = ["J", "L", "LM", "LMC", "LCF", "LCFA", "LCFAT", "LCFATO"]
+    assert [row["setting"] for row in rows] == [*names, "LCFATO, TorchRL SoftUpdate"]
     expected_on = [
         (False, False, False, False, False, False, False),
         (True, False, False, False, False, False, False),
@@ -208,7 +210,7 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
         (True, False, True, True, True, True, True),
     ]
     for on, row in zip(expected_on, rows):
-        assert calls.count(on) == 5 + repeats * sizes["updates"], row
+        assert calls.count((on, "PolyakUpdate")) == 5 + repeats * sizes["updates"], row
         assert row["bounds on"] == (
             ", ".join(
                 n
@@ -230,7 +232,11 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
         )
         assert number(row["ms per update"]) > 0
         assert_quotient(row["vs J"], row["ms per update"], rows[0]["ms per update"])
-    assert len(calls) == 8 * (5 + repeats * sizes["updates"])
+    reference = rows[-1]
+    assert calls.count((expected_on[-1], "SoftUpdate")) == 5 + repeats * sizes["updates"]
+    assert reference["bounds on"] == "as LCFATO" and number(reference["ms per update"]) > 0
+    assert_quotient(reference["vs J"], reference["ms per update"], rows[0]["ms per update"])
+    assert len(calls) == 9 * (5 + repeats * sizes["updates"])
     assert f"on {sizes['maze']} ({sizes['transitions']:,} random-walk transitions stored" in text
 
 

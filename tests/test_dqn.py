@@ -13,9 +13,9 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.data import Categorical
 from torchrl.modules import QValueActor
-from torchrl.objectives import DQNLoss
+from torchrl.objectives import DQNLoss, SoftUpdate
 
-from ss_drl.agents.dqn import DQNAgent
+from ss_drl.agents.dqn import DQNAgent, PolyakUpdate
 from ss_drl.envs.maze import load_maze
 from ss_drl.her import HindsightReplayBuffer
 from ss_drl.smart_start import CountModel
@@ -144,6 +144,37 @@ def test_soft_update_moves_the_lean_target_network_by_tau():
     online = agent.q_network.state_dict()
     for name, old in before.items():
         torch.testing.assert_close(after[name], 0.5 * old + 0.5 * online[name])
+
+
+def test_polyak_update_equals_torchrl_soft_update_bit_for_bit():
+    """PolyakUpdate steps the target with one fused lerp; after the same updates on the same samples its target
+    network and online network equal those of an agent stepped by TorchRL's SoftUpdate exactly (a run is unchanged
+    by the faster updater), and a checkpoint restored into a fresh agent keeps stepping the restored tensors."""
+    agents = []
+    for updater in (None, SoftUpdate):
+        agent = make_agent("agent.target_update=soft", "agent.tau=0.3")
+        assert isinstance(agent.target_updater, PolyakUpdate)
+        if updater is not None:
+            agent.target_updater = updater(agent.loss, tau=0.3)
+        agent.replay_buffer.extend(random_batch(agent.maze.n_cells).unsqueeze(1).expand(64, 1).clone())
+        torch.manual_seed(1)
+        for _ in range(5):
+            agent.update()
+        agents.append(agent)
+    fast, reference = (dict(a.loss.named_parameters()) | dict(a.loss.named_buffers()) for a in agents)
+    assert fast.keys() == reference.keys() and any("target" in k for k in fast)
+    for name, value in fast.items():
+        assert torch.equal(value, reference[name]), name
+    # A restored agent: its updater lerps the loaded target toward the loaded online weights.
+    restored = make_agent("agent.target_update=soft", "agent.tau=0.3")
+    restored.target_updater.step()  # gathers its tensors before the load, which must write them in place
+    restored.load_state_dict(agents[0].state_dict())
+    target = restored.loss.target_value_network.network.state_dict()
+    expected = {k: v.clone() for k, v in target.items()}
+    restored.target_updater.step()
+    online = restored.q_network.state_dict()
+    for name, old in expected.items():
+        assert torch.equal(target[name], old.lerp(online[name], 1 - (1 - 0.3))), name
 
 
 def test_checkpoint_round_trip_keeps_the_target_network():

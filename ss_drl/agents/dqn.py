@@ -109,6 +109,32 @@ class _BoundTarget:
         return self.network(observation, desired_goal)
 
 
+class PolyakUpdate(SoftUpdate):
+    """TorchRL's ``SoftUpdate`` (target <- target lerped toward online by tau = 1 - eps), stepped with one fused
+    ``torch._foreach_lerp_`` over the parameter tensors, gathered once.
+
+    ``SoftUpdate.step`` walks the loss's parameter tensordicts and lerps through ``TensorDict.data`` on every call,
+    about 1.1 ms of Python per update on Extreme's network against 0.3 ms for the lerp itself. The arithmetic is
+    the same kernel with the same weight ``1 - eps``, so a run is unchanged bit for bit (``tests/test_dqn.py``
+    checks it against ``SoftUpdate``). The tensors are the loss's own: the optimizer and ``load_state_dict`` write
+    them in place, so the gathered lists stay valid.
+    """
+
+    _pairs: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None
+
+    def step(self) -> None:
+        if self._pairs is None:
+            if not self.initialized:
+                super().step()  # raises TorchRL's error
+            targets, sources = [], []
+            for key, source in self._sources.items(True, True):
+                key = (f"target_{key[0]}", *key[1:]) if isinstance(key, tuple) else f"target_{key}"
+                targets.append(self._targets.get(key).data)
+                sources.append(source.data)
+            self._pairs = (targets, sources)
+        torch._foreach_lerp_(*self._pairs, 1 - self.eps)
+
+
 class GoalDQNLoss(LossModule):
     """The DQN loss of a :class:`GoalQNetwork`: TD(0) target from a target network, optional double DQN.
 
@@ -279,7 +305,7 @@ class DQNAgent:
         if cfg.target_update == "hard":
             self.target_updater = HardUpdate(self.loss, value_network_update_interval=cfg.target_update_interval)
         else:
-            self.target_updater = SoftUpdate(self.loss, tau=cfg.tau)
+            self.target_updater = PolyakUpdate(self.loss, tau=cfg.tau)
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=cfg.lr, fused=True)
         # Read per update: plain attributes, not DictConfig lookups (tens of microseconds each).
         self.learning_starts, self.batch_size = int(cfg.learning_starts), int(cfg.batch_size)
