@@ -114,26 +114,20 @@ def bench_update(
 
     layout = load_maze(maze)
     data = random_walk_batch(layout, transitions, episode_len)
+    reference = SETTINGS[-1][0] + ", TorchRL SoftUpdate"  # the default, its target stepped by TorchRL's updater
     agents = {}
-    for name, overrides in SETTINGS:
+    for name, overrides in (*SETTINGS, (reference, SETTINGS[-1][1])):
         cfg = compose_config([f"+experiment={maze}_ss_her", *overrides])
         counts = CountModel(layout.n_cells)
         counts.update(data["observation"], data["action"], data["next", "observation"], data["next", "reward"])
         torch.manual_seed(0)
         agent = make_agent(cfg, layout, 0, counts)
+        if name == reference:  # instead of ss-drl's PolyakUpdate (the same result)
+            agent.target_updater = SoftUpdate(agent.loss, tau=float(cfg.agent.tau))
         agent.store(data.clone())
         for _ in range(5):  # warm-up (and the ceiling's first BFS)
             agent.update()
         agents[name] = agent
-    # The default again, its target stepped by TorchRL's SoftUpdate instead of ss-drl's PolyakUpdate (same result).
-    reference = SETTINGS[-1][0] + ", TorchRL SoftUpdate"
-    torch.manual_seed(0)
-    agent = make_agent(cfg, layout, 0, agents[SETTINGS[-1][0]].counts)
-    agent.target_updater = SoftUpdate(agent.loss, tau=float(cfg.agent.tau))
-    agent.store(data.clone())
-    for _ in range(5):
-        agent.update()
-    agents[reference] = agent
     times: dict[str, list[float]] = {name: [] for name in agents}
     for _ in range(repeats):
         for name, agent in agents.items():
