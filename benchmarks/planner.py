@@ -27,10 +27,11 @@ def load_planner_maze(name: str):
 
 
 def matmul_floor(n: int, embed_dim: int, hidden: Sequence[int], actions: int = 4) -> Callable[[], None]:
-    """The matrix products alone of one Q evaluation of ``n`` states for one goal, in ``goal_q_values``' row blocks:
-    the state half of the first layer (E -> H1), the hidden layers and the head, into preallocated outputs. Any
-    evaluation of Q for all visited states with this network costs at least this much (the rest is extra)."""
-    from ss_drl.smart_start.selection import BLOCK_ROWS
+    """The matrix products alone of one Q evaluation of ``n`` states for one goal, in the row blocks of
+    ``GoalQNetwork.goal_q_values``: the state half of the first layer (E -> H1), the hidden layers and the head, into
+    preallocated outputs. Any evaluation of Q for all visited states with this network costs at least this much (the
+    rest is extra)."""
+    from ss_drl.agents.network import BLOCK_ROWS
 
     block = min(BLOCK_ROWS, n)
     sizes = [min(block, n - start) for start in range(0, n, block)]
@@ -51,10 +52,9 @@ def bench_planner(repeats: int, mazes: Sequence[str] = PLANNER_MAZES, seed: int 
     """ms per Smart Start decision (UCB selection + value iteration) on fully explored mazes (median of repeats)."""
     from omegaconf import OmegaConf
 
-    from ss_drl.agents.dqn import GoalQNetwork
+    from ss_drl.agents.network import GoalQNetwork
     from ss_drl.smart_start import Planner, select_smart_start
     from ss_drl.smart_start.counts import fully_explored_model
-    from ss_drl.smart_start.selection import goal_q_values
 
     ss = OmegaConf.load(CONFIG_DIR / "smart_start" / "on.yaml")
     agent = OmegaConf.load(CONFIG_DIR / "agent" / "dqn.yaml")
@@ -69,7 +69,7 @@ def bench_planner(repeats: int, mazes: Sequence[str] = PLANNER_MAZES, seed: int 
         def max_q(states, goals, q_net=q_net):
             # Every visited state for each goal in one batched evaluation (goal_q_values: the first layer's state
             # and goal halves computed separately), then max over actions.
-            return goal_q_values(q_net, states, goals).amax(dim=-1)
+            return q_net.goal_q_values(states, goals).amax(dim=-1)
 
         planner = Planner(maze.width, gamma=ss.gamma, theta=ss.theta, tol=ss.tol, max_sweeps=ss.max_sweeps)
         goals = torch.tensor([maze.goal_cell])
@@ -128,11 +128,11 @@ def bench_planner(repeats: int, mazes: Sequence[str] = PLANNER_MAZES, seed: int 
         f"(median of {repeats}; torch threads {torch.get_num_threads()})",
         "",
         f"Selection: UCB over all visited states with a fresh `GoalQNetwork` ({agent.encoder}, "
-        f"hidden {list(agent.hidden)}) evaluated by `goal_q_values`, one goal; 'w_q 0': S_ss by counts alone (the "
-        "paper-setup experiments), which needs no network pass. 'its matmuls alone': the matrix products of that "
-        "evaluation, in its row blocks, on preallocated tensors, nothing else. Planning: `Planner.plan` "
-        f"(gamma={ss.gamma}, theta={ss.theta}, tol={ss.tol}, max_sweeps={ss.max_sweeps}) towards the target. "
-        "'states with V>0': visited states other than the target from which the plan has a route.",
+        f"hidden {list(agent.hidden)}) evaluated by `GoalQNetwork.goal_q_values`, one goal; 'w_q 0': S_ss by counts "
+        "alone (the paper-setup experiments), which needs no network pass. 'its matmuls alone': the matrix "
+        "products of that evaluation, in its row blocks, on preallocated tensors, nothing else. Planning: "
+        f"`Planner.plan` (gamma={ss.gamma}, theta={ss.theta}, tol={ss.tol}, max_sweeps={ss.max_sweeps}) towards the "
+        "target. 'states with V>0': visited states other than the target from which the plan has a route.",
         "",
         markdown_table(headers, rows),
         "",

@@ -1,9 +1,17 @@
-"""The ``train`` section: training throughput (env steps/s, updates included) on Easy of ss-drl (``easy_dqn_her``, and
-``easy_ss_her`` for information) against Stable-Baselines3 ``DQN`` + ``HerReplayBuffer`` with the same network width,
-batch size, buffer size, learning_starts, update-to-data ratio and HER setting, run one after the other in this
+"""The ``train`` section: training throughput (env steps/s, updates included) on Easy of ss-drl against
+Stable-Baselines3 ``DQN`` + ``HerReplayBuffer`` with the same network width, batch size, buffer size,
+learning_starts, update-to-data ratio, target-network update and HER setting, run one after the other in this
 process, and the eager-PyTorch ceiling (:func:`run_bare_update`). Only the training phase is timed (from
 learning_starts on); the whole-run rate is shown too. Stable-Baselines3 is optional (the ``bench`` extra): without
 it the SB3 rows are left out with a note.
+
+The ss-drl run compared is ``easy_dqn_her``: the replay-only DQN (``agent=dqn``) with HER, which learns from its
+replay buffer alone, as SB3's DQN does. SB3 has no counterpart of the count model's bounds, so the model-bounded
+learner (``easy_dqn_her_bounded``, which at 7ac5009 was ``easy_dqn_her``) is not the like-for-like comparison and
+is not run. A second row runs ``easy_dqn_her`` in SB3's form (:func:`sb3_form`): SB3's plain one-step DQN target
+with its Huber loss, no dueling head and none of the replay-only DQN's bounds (its k-step maximum costs network
+passes SB3 never makes), so that the two libraries do the same arithmetic per update. ``easy_ss_her`` (Smart Start
+on) is timed for information.
 """
 
 from __future__ import annotations
@@ -37,8 +45,38 @@ def train_phase_window(run_dir) -> tuple[float, int, int]:
     )
 
 
-# ss-drl's DQN in the form of SB3's: plain DQN target (no double DQN) and no dueling head; same width and batch.
-SB3_FORM = ("agent.double_dqn=false", "agent.dueling=false")
+#: ss-drl's DQN in the form of SB3's: the plain one-step DQN target (no double DQN, no n-step, no clipping), the Huber
+#: loss and no dueling head; :func:`sb3_form` also turns off every bound the experiment's learner has on.
+SB3_FORM = (
+    "agent.double_dqn=false",
+    "agent.dueling=false",
+    "agent.n_step=1",
+    "agent.clip_targets=false",
+    "agent.loss=smooth_l1",
+)
+SB3_FORM_NOTE = "plain one-step DQN target, Huber loss, no dueling head, no bound"
+
+
+def sb3_form(agent_cfg) -> tuple[str, ...]:
+    """The overrides that put the learner of ``agent_cfg`` (a composed ``agent`` node) in SB3's form: :data:`SB3_FORM`
+    and each TD-target switch that is on in it turned off."""
+    from ss_drl.agents.settings import DQNSettings
+    from ss_drl.agents.targets import assumptions
+
+    on = assumptions(DQNSettings.from_config(agent_cfg))
+    return SB3_FORM + tuple(f"agent.{key}=false" for key in on)
+
+
+def sb3_target_update(agent_cfg) -> tuple[int, float]:
+    """SB3's ``(target_update_interval, tau)`` for ss-drl's target-network update. ss-drl counts in updates, SB3 in
+    env steps (at most one target update per env step): a hard copy every ``target_update_interval`` updates is a copy
+    (tau 1) every that many updates' env steps; a Polyak step at ``tau`` every update is one every
+    ``max(1, train_freq // gradient_steps)`` env steps, at the tau that averages at the same rate per env step."""
+    per_env_step = int(agent_cfg.gradient_steps) / int(agent_cfg.train_freq)
+    if agent_cfg.target_update == "hard":
+        return int(agent_cfg.target_update_interval) * int(agent_cfg.train_freq) // int(agent_cfg.gradient_steps), 1.0
+    interval = max(1, int(agent_cfg.train_freq) // int(agent_cfg.gradient_steps))
+    return interval, 1.0 - (1.0 - float(agent_cfg.tau)) ** (interval * per_env_step)
 
 
 def _train_overrides(experiment: str, steps: int, learning_starts: int, max_steps: int, seed: int) -> list[str]:
@@ -139,6 +177,7 @@ def sb3_kwargs(agent_cfg, her_cfg, learning_starts: int, total_steps: int) -> di
     """SB3 ``DQN`` arguments matching an ss-drl agent/HER config (see the parity table the section prints)."""
     from stable_baselines3 import HerReplayBuffer
 
+    target_update_interval, tau = sb3_target_update(agent_cfg)
     return dict(
         learning_rate=float(agent_cfg.lr),
         buffer_size=int(agent_cfg.buffer_size),
@@ -147,10 +186,8 @@ def sb3_kwargs(agent_cfg, her_cfg, learning_starts: int, total_steps: int) -> di
         gamma=float(agent_cfg.gamma),
         train_freq=int(agent_cfg.train_freq),
         gradient_steps=int(agent_cfg.gradient_steps),
-        # ss-drl counts target copies in updates, SB3 in env steps.
-        target_update_interval=int(agent_cfg.target_update_interval)
-        * int(agent_cfg.train_freq)
-        // int(agent_cfg.gradient_steps),
+        target_update_interval=target_update_interval,
+        tau=tau,
         exploration_initial_eps=float(agent_cfg.eps_start),
         exploration_final_eps=float(agent_cfg.eps_end),
         exploration_fraction=min(1.0, int(agent_cfg.eps_decay_steps) / total_steps),
@@ -196,6 +233,8 @@ def bench_train(
 ) -> str:
     """Training throughput of ss-drl vs SB3 DQN + HER on the same maze and settings (median of repeats).
 
+    ``experiments[0]`` is compared with SB3, as it runs and in SB3's form; the rest are timed for information. The
+    default compares the replay-only ``easy_dqn_her`` (see the module's docstring).
     ``max_steps``/``learning_starts`` default to the experiment's ``env.max_steps`` and
     ``max(agent.learning_starts, env.max_steps)``: SB3's ``HerReplayBuffer`` cannot sample before the first episode
     has ended, which is only certain after ``max_steps`` env steps.
@@ -206,6 +245,7 @@ def bench_train(
         learning_starts = max(int(base.agent.learning_starts), max_steps)
     learning_starts = int(learning_starts)
     agent, her = base.agent, base.her
+    form = sb3_form(agent)
     out = [
         f"## train: training throughput on {base.env.preset} (median of {repeats}; {steps} timed env steps after "
         f"learning_starts={learning_starts}; torch threads {torch.get_num_threads()})",
@@ -220,8 +260,8 @@ def bench_train(
         )
 
     runs: dict[str, list[dict]] = {name: [] for name in experiments}
-    sb3_form = f"{experiments[0]}, SB3's form"
-    runs[sb3_form] = []
+    form_key = f"{experiments[0]}, SB3's form"
+    runs[form_key] = []
     if have_sb3:
         runs["sb3"] = []
         kwargs = sb3_kwargs(agent, her, learning_starts, learning_starts + steps)
@@ -234,7 +274,7 @@ def bench_train(
     # Interleaved, so that drifting load on a shared machine hits every method alike.
     for _ in range(repeats):
         runs[experiments[0]].append(run_ssdrl(experiments[0], steps, learning_starts, max_steps))
-        runs[sb3_form].append(run_ssdrl(experiments[0], steps, learning_starts, max_steps, overrides=SB3_FORM))
+        runs[form_key].append(run_ssdrl(experiments[0], steps, learning_starts, max_steps, overrides=form))
         if have_sb3:
             runs["sb3"].append(run_sb3(env_id, kwargs, steps, learning_starts, max_steps))
         for name in experiments[1:]:
@@ -255,7 +295,7 @@ def bench_train(
 
     rows = [
         row(f"`{experiments[0]}`", "ss-drl (TorchRL)", runs[experiments[0]]),
-        row(f"`{experiments[0]}` {' '.join(SB3_FORM)} (SB3's form)", "ss-drl (TorchRL)", runs[sb3_form]),
+        row(f"`{experiments[0]}` in SB3's form", "ss-drl (TorchRL)", runs[form_key]),
     ]
     if have_sb3:
         rows.append(row("SB3 `DQN` + `HerReplayBuffer`", f"stable-baselines3 {sb3_version()}", runs["sb3"]))
@@ -289,16 +329,15 @@ def bench_train(
         out += [note, ""]
     if have_sb3:
         ours = median([r["steps_per_s"] for r in runs[experiments[0]]])
-        same_form = median([r["steps_per_s"] for r in runs[sb3_form]])
+        same_form = median([r["steps_per_s"] for r in runs[form_key]])
         theirs = median([r["steps_per_s"] for r in runs["sb3"]])
         out.append(f"- ratio ours/SB3 (train-phase env steps/s, `{experiments[0]}`): **{ours / theirs:.2f}x**")
-        out.append(
-            f"- ratio ours/SB3 with SB3's form of DQN (plain target, no dueling head): **{same_form / theirs:.2f}x**"
-        )
+        out.append(f"- ratio ours/SB3 with SB3's form of DQN ({SB3_FORM_NOTE}): **{same_form / theirs:.2f}x**")
         out.append(
             f"- ceiling/SB3: **{bare_rate * steps_per_update / theirs:.2f}x**: at this update-to-data ratio no "
             "trainer built on eager PyTorch steps the env faster than its bare update allows, env and buffer free"
         )
+    out.append(f"- SB3's form ({SB3_FORM_NOTE}): `{experiments[0]}` {' '.join(form)}")
     for name in experiments[1:]:
         decisions = median([r["decisions"] for r in runs[name]])
         out.append(f"- `{name}`: {decisions:.0f} Smart Start decisions per run (one per episode start after the first)")
@@ -306,11 +345,24 @@ def bench_train(
         "- whole-run = all env steps / wall time (ss-drl: the trainer's `env_steps_per_s`, which includes the "
         "greedy evaluations at step 0 and at the end; SB3: both `learn` calls)"
     )
+    from ss_drl.agents.settings import DQNSettings
+    from ss_drl.agents.targets import assumptions
+    from ss_drl.methods import method_label
+
+    bounds = ", ".join(assumptions(DQNSettings.from_config(agent))) or "none"
+    interval, tau = sb3_target_update(agent)
+    if agent.target_update == "hard":
+        ours_target = f"hard copy every {agent.target_update_interval} updates"
+        their_target = f"hard copy every {interval} env steps"
+    else:
+        ours_target = f"Polyak, tau={agent.tau} every update"
+        their_target = f"Polyak, tau={tau:.4g} every {interval} env step(s)"
     parity = [
+        ["learner", f"{method_label(base)} (`{experiments[0]}`; bounds on: {bounds})", "`DQN` + `HerReplayBuffer`"],
         ["env", f"`BatchedMazeEnv({base.env.preset!r}, 1, max_steps={max_steps})`", f"`gymnasium.make({env_id!r})`"],
         [
             "network",
-            f"cell embeddings 2x{agent.embed_dim} -> MLP {list(agent.hidden)}, dueling={agent.dueling}",
+            f"{agent.encoder} cell encoders 2x{agent.embed_dim} -> MLP {list(agent.hidden)}, dueling={agent.dueling}",
             f"3 flattened (row, col) pairs -> MLP net_arch={list(agent.hidden)}",
         ],
         ["batch / buffer", f"{agent.batch_size} / {agent.buffer_size}", f"{agent.batch_size} / {agent.buffer_size}"],
@@ -320,16 +372,18 @@ def bench_train(
             f"train_freq={agent.train_freq}, gradient_steps={agent.gradient_steps}",
             f"train_freq={agent.train_freq}, gradient_steps={agent.gradient_steps}",
         ],
-        [
-            "target net",
-            f"hard copy every {agent.target_update_interval} updates",
-            f"every {agent.target_update_interval * agent.train_freq // agent.gradient_steps} env steps",
-        ],
+        ["target net", ours_target, their_target],
         ["HER", f"{her.strategy}, k={her.k}", f"{her.strategy}, n_sampled_goal={her.k}"],
         [
             "loss / target",
-            f"{agent.loss}, double DQN={agent.double_dqn}",
-            "smooth L1, plain DQN target",
+            f"{agent.loss}, double DQN={agent.double_dqn}, {agent.n_step}-step, clipped={agent.clip_targets} (in "
+            f"SB3's form: {SB3_FORM_NOTE})",
+            "smooth L1, plain one-step DQN target",
+        ],
+        [
+            "reward / gamma",
+            f"env reward - {agent.step_cost} per step, gamma={agent.gamma}",
+            f"env reward, gamma={agent.gamma}",
         ],
     ]
     out += ["", "Settings compared:", "", markdown_table(["", "ss-drl", "SB3"], parity)]

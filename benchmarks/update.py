@@ -1,15 +1,23 @@
-"""The ``update`` section: ms per ``DQNAgent.update()`` under each of the TD-target options of issue 12, side by side.
+"""The ``update`` section: ms per ``DQNAgent.update()`` of the two DQN learners, side by side with the reference
+that has no bound.
 
-The settings are the stages of ``docs/long_horizons.md``: J (no bound), L (J + ``agent.hindsight_bound``), LM (L +
-``agent.n_step_max``, stage 10, the default until session 19), LMC (LM + ``agent.distance_ceiling``), LCF (L +
-``agent.distance_ceiling`` + ``agent.distance_floor``, stage 12), LCFA (LCF + ``agent.bound_all_actions``, stage
-14), LCFAT (LCFA + ``agent.model_targets``, stage 15) and LCFATO (LCFAT + ``agent.optimistic_floor``, stage 20, the
-default), and LCFATO once more with its target network stepped by TorchRL's ``SoftUpdate`` instead of ss-drl's
-``PolyakUpdate`` (the same arithmetic; what the fused lerp saves). Each agent is built as the trainer builds it
-(``make_agent``) and gets the same replay data: random-walk episodes on the maze, with real moves and G terminal,
-which a count model also counts (the distance ceiling and floor read it; it does not grow here, so their searches
-run once, in the warm-up). The settings are timed in turn within each repeat, so the machine's load falls on all of
-them alike; the table gives the median ms per update and the ratio to J's median.
+The rows, named by the stages of ``docs/ablations.md`` (the lab notebook is ``docs/notebook/long_horizons.md``):
+
+* **J**: the replay-only DQN with every bound off (stage 8): the reference the ratios are to;
+* **dqn**: the replay-only DQN as ``agent=dqn`` composes it (stage 10's LM: the hindsight bound and the k-step
+  maximum);
+* **dqn_bounded**: the model-bounded DQN as ``agent=dqn_bounded`` composes it (stage 20's LCFATO: the count model's
+  distance floor and ceiling on every action, the model targets and the optimistic floor);
+* **dqn_bounded, TorchRL SoftUpdate**: the model-bounded DQN once more, its target network stepped by TorchRL's
+  ``SoftUpdate`` instead of ss-drl's ``PolyakUpdate`` (the same arithmetic; what the fused lerp saves).
+
+The learners' rows are composed from the ``agent`` group (:data:`LEARNERS`), so they follow ``conf/agent/*.yaml``;
+J is ``agent=dqn`` with each switch that is on there turned off. The "bounds on" column lists the switches on in the
+built agent's settings (:func:`ss_drl.agents.targets.assumptions`). Each agent is built as the trainer builds it
+(``make_agent``, in ``<maze>_ss_her``) and gets the same replay data: random-walk episodes on the maze, with real
+moves and G terminal, which a count model also counts (the distance ceiling and floor read it; it does not grow
+here, so their searches run once, in the warm-up). The settings are timed in turn within each repeat, so the
+machine's load falls on all of them alike; the table gives the median ms per update and the ratio to J's median.
 """
 
 from __future__ import annotations
@@ -21,47 +29,29 @@ import torch
 
 from benchmarks.common import compose_config, fmt_ms, markdown_table, median
 
-#: The TD-target options of issue 12, in the order of the stages that added them.
-OPTIONS = (
-    "hindsight_bound",
-    "n_step_max",
-    "distance_ceiling",
-    "distance_floor",
-    "bound_all_actions",
-    "model_targets",
-    "optimistic_floor",
-)
+#: (row, ``agent`` group, stage of docs/ablations.md) of each learner timed: its setting is the group's composition.
+LEARNERS = (("dqn", "dqn", "LM"), ("dqn_bounded", "dqn_bounded", "LCFATO"))
+#: The reference row: the replay-only DQN with every bound off.
+REFERENCE = ("J", "J")
+#: The model-bounded DQN with its target network stepped by TorchRL's ``SoftUpdate``.
+SOFT_UPDATE = "dqn_bounded, TorchRL SoftUpdate"
 
 
-def _setting(*on: str) -> tuple[str, ...]:
-    """Overrides that turn on the options ``on`` and every other one of :data:`OPTIONS` off, whatever the defaults."""
-    return tuple(f"agent.{option}={str(option in on).lower()}" for option in OPTIONS)
+def switches_on(settings) -> list[str]:
+    """The TD target's switches (bounds and their modifiers) that are on in ``settings`` (a ``DQNSettings``)."""
+    from ss_drl.agents.targets import assumptions
+
+    return list(assumptions(settings))
 
 
-#: (name, overrides) of each setting timed, in the order of the stages that added them.
-SETTINGS = (
-    ("J", _setting()),
-    ("L", _setting("hindsight_bound")),
-    ("LM", _setting("hindsight_bound", "n_step_max")),
-    ("LMC", _setting("hindsight_bound", "n_step_max", "distance_ceiling")),
-    ("LCF", _setting("hindsight_bound", "distance_ceiling", "distance_floor")),
-    ("LCFA", _setting("hindsight_bound", "distance_ceiling", "distance_floor", "bound_all_actions")),
-    (
-        "LCFAT",
-        _setting("hindsight_bound", "distance_ceiling", "distance_floor", "bound_all_actions", "model_targets"),
-    ),
-    (
-        "LCFATO",
-        _setting(
-            "hindsight_bound",
-            "distance_ceiling",
-            "distance_floor",
-            "bound_all_actions",
-            "model_targets",
-            "optimistic_floor",
-        ),
-    ),
-)
+def setting_overrides(maze: str) -> list[tuple[str, str, tuple[str, ...]]]:
+    """(row, stage, overrides of ``+experiment=<maze>_ss_her``) of J and of each of :data:`LEARNERS`. J is
+    ``agent=dqn`` with every switch that is on there turned off, whatever the YAML turns on."""
+    from ss_drl.agents.settings import DQNSettings
+
+    base = compose_config([f"+experiment={maze}_ss_her", "agent=dqn"])
+    off = tuple(f"agent.{key}=false" for key in switches_on(DQNSettings.from_config(base.agent)))
+    return [(*REFERENCE, ("agent=dqn", *off))] + [(row, stage, (f"agent={group}",)) for row, group, stage in LEARNERS]
 
 
 def random_walk_batch(maze, rows: int, episode_len: int, seed: int = 0):
@@ -104,8 +94,8 @@ def random_walk_batch(maze, rows: int, episode_len: int, seed: int = 0):
 def bench_update(
     repeats: int, maze: str = "hard", transitions: int = 20_000, updates: int = 100, episode_len: int = 1000
 ) -> str:
-    """ms per update of each setting in :data:`SETTINGS` on ``maze`` (median over repeats of the mean of
-    ``updates`` updates), and its ratio to the first setting's."""
+    """ms per update of J and each of :data:`LEARNERS` on ``maze`` (median over repeats of the mean of ``updates``
+    updates), then the model-bounded DQN with TorchRL's ``SoftUpdate``, and each one's ratio to J's."""
     from torchrl.objectives import SoftUpdate
 
     from ss_drl.envs.maze import load_maze
@@ -114,20 +104,21 @@ def bench_update(
 
     layout = load_maze(maze)
     data = random_walk_batch(layout, transitions, episode_len)
-    reference = SETTINGS[-1][0] + ", TorchRL SoftUpdate"  # the default, its target stepped by TorchRL's updater
-    agents = {}
-    for name, overrides in (*SETTINGS, (reference, SETTINGS[-1][1])):
+    settings = setting_overrides(maze)
+    bounded = settings[-1]
+    agents, stages = {}, {}
+    for name, stage, overrides in (*settings, (SOFT_UPDATE, bounded[1], bounded[2])):
         cfg = compose_config([f"+experiment={maze}_ss_her", *overrides])
         counts = CountModel(layout.n_cells)
         counts.update(data["observation"], data["action"], data["next", "observation"], data["next", "reward"])
         torch.manual_seed(0)
         agent = make_agent(cfg, layout, 0, counts)
-        if name == reference:  # instead of ss-drl's PolyakUpdate (the same result)
-            agent.target_updater = SoftUpdate(agent.loss, tau=float(cfg.agent.tau))
+        if name == SOFT_UPDATE:  # instead of ss-drl's PolyakUpdate (the same result)
+            agent.target_updater = SoftUpdate(agent.loss, tau=agent.settings.tau)
         agent.store(data.clone())
         for _ in range(5):  # warm-up (and the ceiling's first BFS)
             agent.update()
-        agents[name] = agent
+        agents[name], stages[name] = agent, stage
     times: dict[str, list[float]] = {name: [] for name in agents}
     for _ in range(repeats):
         for name, agent in agents.items():
@@ -135,19 +126,19 @@ def bench_update(
             for _ in range(updates):
                 agent.update()
             times[name].append((time.perf_counter() - start) / updates * 1e3)
-    base = median(times[SETTINGS[0][0]])
+    reference = REFERENCE[0]
+    base = median(times[reference])
     rows = []
-    for name, overrides in SETTINGS:
-        on = [o.split("=")[0].removeprefix("agent.") for o in overrides if o.endswith("=true")]
+    for name, agent in agents.items():
         ms = median(times[name])
-        rows.append([name, ", ".join(on) or "none", fmt_ms(ms), f"{ms / base:.2f}x"])
-    ms = median(times[reference])
-    rows.append([reference, "as " + SETTINGS[-1][0], fmt_ms(ms), f"{ms / base:.2f}x"])
+        on = "as " + bounded[0] if name == SOFT_UPDATE else ", ".join(switches_on(agent.settings)) or "none"
+        rows.append([name, stages[name], on, fmt_ms(ms), f"{ms / base:.2f}x"])
+    batch = agents[reference].settings.batch_size
     return "\n".join(
         [
             f"## update: ms per DQNAgent.update() on {maze} ({transitions:,} random-walk transitions stored, batch "
-            f"{int(cfg.agent.batch_size)}; median of {repeats} interleaved repeats of {updates} updates)",
+            f"{batch}; median of {repeats} interleaved repeats of {updates} updates)",
             "",
-            markdown_table(["setting", "bounds on", "ms per update", f"vs {SETTINGS[0][0]}"], rows),
+            markdown_table(["setting", "stage", "bounds on", "ms per update", f"vs {reference}"], rows),
         ]
     )

@@ -4,6 +4,10 @@ and results.md, from run or Hydra multirun directories.
 
     python scripts/plot.py multirun/2026-11-22/10-00-00 [more dirs] [--out OUT] [--smooth K] [--bootstrap N] [--seed S]
 
+Runs are grouped by maze and by the method their resolved config ran (ss_drl/methods.py), never by the label stored
+in summary.json: a run directory written before the learners were renamed (docs/migration.md) with the count
+model's bounds on is ``<method>_bounded``.
+
 All the logic lives in :mod:`ss_drl.analysis`; see ``ss_drl.analysis.plots.main``. An installed package runs
 the same as the ``ss-drl-plot`` console script.
 """

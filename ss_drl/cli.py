@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import difflib
 import sys
 import traceback
 from pathlib import Path
@@ -31,24 +32,53 @@ def config_dir() -> Path:
 
 class ValidateBeforeRun(Callback):
     """Hydra callback (``hydra.callbacks`` in conf/config.yaml): check the config before Hydra creates the run
-    directory, so a refused run leaves nothing behind. Sweeps are checked per job instead (a refused job writes
-    FAILED in its directory and the others go on), except that a new sweep is refused as a whole, before any job,
-    when its directory already holds runs."""
+    directory, so a refused run leaves nothing behind: the values, a run directory another run's outputs hold, and
+    on ``trainer.resume`` the checkpoint (there, readable, of this format, written with the same config). Sweeps are
+    checked per job instead (a refused job writes FAILED in its directory and the others go on), except that a new
+    sweep is refused as a whole, before any job, when its directory already holds runs, and a resumed one when a job
+    holds a checkpoint written before the learners were renamed."""
 
     def on_run_start(self, config: DictConfig, **kwargs) -> None:
-        from ss_drl.training.checkpoint import refuse_overwrite
+        from ss_drl.training.checkpoint import check_resume, refuse_overwrite
         from ss_drl.training.config import ConfigError, validate_config
 
+        global _created
+        _created = _first_missing(Path(config.hydra.run.dir))
         run_dir = _resume_dir(config) or Path(config.hydra.run.dir)
-        _refuse_on(lambda: (validate_config(config), refuse_overwrite(config, run_dir)), ConfigError)
+        _refuse_on(
+            lambda: (validate_config(config), refuse_overwrite(config, run_dir), check_resume(config, run_dir)),
+            ConfigError,
+        )
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
-        from ss_drl.training.checkpoint import refuse_overwrite
+        from ss_drl.training.checkpoint import refuse_overwrite, resumes
         from ss_drl.training.config import ConfigError
 
         sweep_dir = Path(config.hydra.sweep.dir)
         jobs = sorted(p for p in sweep_dir.glob("*") if p.is_dir()) if sweep_dir.is_dir() else []
-        _refuse_on(lambda: [refuse_overwrite(config, job, key="hydra.sweep.dir") for job in jobs], ConfigError)
+
+        def check() -> None:
+            for job in jobs:
+                refuse_overwrite(config, job, key="hydra.sweep.dir")
+                if resumes(config.trainer.resume):
+                    _refuse_old_checkpoint(job)
+
+        _refuse_on(check, ConfigError)
+
+
+def _refuse_old_checkpoint(run_dir: Path) -> None:
+    """A checkpoint in ``run_dir`` written before the learners were renamed: :class:`ConfigError` (a cheap look: the
+    tensors are mapped, not read)."""
+    from ss_drl.training import checkpoint as ckpt
+
+    path = run_dir / ckpt.CHECKPOINT_FILE
+    if not path.is_file():
+        return
+    try:
+        state = ckpt.peek(run_dir)
+    except Exception:  # noqa: BLE001  (an unreadable checkpoint is the job's own failure, reported in its FAILED)
+        return
+    ckpt.check_format(state, path)
 
 
 def _refuse_on(check, error: type[Exception]) -> None:
@@ -58,6 +88,54 @@ def _refuse_on(check, error: type[Exception]) -> None:
     except error as exc:
         print(f"ss-drl: config error: {exc}", file=sys.stderr)
         sys.exit(2)
+
+
+#: The first directory on the way to ``hydra.run.dir`` that did not exist when the run started (None: it existed),
+#: set by :class:`ValidateBeforeRun`. A run refused after Hydra created the run directory removes it again, when
+#: Hydra's own files are all it holds (:func:`_remove_hydra_files`).
+_created: Path | None = None
+
+
+def _first_missing(path: Path) -> Path | None:
+    """The outermost directory of ``path`` (itself included) that does not exist, or None when ``path`` exists."""
+    path = path.absolute()
+    if path.exists():
+        return None
+    while not path.parent.exists():
+        path = path.parent
+    return path
+
+
+def _remove_hydra_files() -> None:
+    """Undo what Hydra wrote for a single run that was then refused: its run directory (``.hydra/`` and the job's
+    log) and the directories above it that Hydra created, if this run created them and nothing else is in them."""
+    if _created is None or _is_multirun():
+        return
+    hydra_cfg = HydraConfig.get()
+    out = Path(hydra_cfg.runtime.output_dir).absolute()
+    if not out.is_relative_to(_created) or not out.is_dir():
+        return
+    subdir = out / hydra_cfg.output_subdir if hydra_cfg.output_subdir else None
+    own = {out / f"{hydra_cfg.job.name}.log"}
+    if subdir is not None:
+        own |= {subdir / name for name in ("config.yaml", "hydra.yaml", "overrides.yaml")}
+    entries = list(out.rglob("*"))
+    files = [p for p in entries if not p.is_dir()]
+    if any(p not in own for p in files) or any(p.is_dir() and p != subdir for p in entries):
+        return  # something else was written there: keep it all
+    for path in files:
+        path.unlink()
+    if subdir is not None and subdir.is_dir():
+        subdir.rmdir()
+    directory = out
+    while True:
+        try:
+            directory.rmdir()
+        except OSError:  # not empty (another run's directory beside it)
+            return
+        if directory == _created:
+            return
+        directory = directory.parent
 
 
 def _resume_dir(cfg: DictConfig) -> Path | None:
@@ -111,20 +189,61 @@ def _train(cfg: DictConfig):
 
 
 def _fail(message: str, code: int):
-    """One clear line on stderr. In a sweep the job is marked failed and the sweep goes on; alone, exit non-zero."""
+    """One clear line on stderr. In a sweep the job is marked failed and the sweep goes on; alone, exit non-zero,
+    leaving no run directory behind when the run was refused before it wrote anything of its own."""
     print(f"ss-drl: {message}", file=sys.stderr)
     if _is_multirun():
         out = Path(HydraConfig.get().runtime.output_dir)
         out.mkdir(parents=True, exist_ok=True)
         (out / FAILED_FILE).write_text(message + "\n")
         return None
+    _remove_hydra_files()
     sys.exit(code)
+
+
+#: Command-line options that change where Hydra finds configs: with them, config group choices are Hydra's to check.
+_SEARCH_OPTIONS = ("--config-dir", "-cd", "--config-path", "-cp", "--config-name", "-cn", "hydra.searchpath")
+
+
+def check_group_choices(argv: list[str], conf: Path) -> None:
+    """Refuse a config group choice on the command line that names no file, e.g. ``+experiment=no_such_name``
+    (:class:`~ss_drl.training.config.ConfigError`, one line naming the group and the nearest choices), before Hydra
+    composes the config: Hydra's own report runs to one line per shipped experiment. Sweep lists (``a,b``) are
+    checked item by item; sweep functions (``glob(...)``, ``range(...)``) and interpolations are left to Hydra."""
+    from ss_drl.training.config import ConfigError
+
+    if any(arg.split("=", 1)[0] in _SEARCH_OPTIONS for arg in argv):
+        return
+    for arg in argv:
+        if arg.startswith(("-", "~")) or "=" not in arg:
+            continue
+        key, value = arg.split("=", 1)
+        group = key.lstrip("+").split("@", 1)[0]
+        if not group or group.startswith("hydra") or not (conf / group).is_dir():
+            continue  # a value (agent.lr=...), or a group of Hydra's own or of a plugin
+        if any(c in value for c in "()[]{}$*"):
+            continue
+        for choice in (v.strip().strip("'\"") for v in value.split(",")):
+            if not choice or choice == "null" or (conf / group / f"{choice}.yaml").is_file():
+                continue
+            names = sorted(p.stem for p in (conf / group).glob("*.yaml"))
+            near = difflib.get_close_matches(choice, names, n=3, cutoff=0.6)
+            if near:
+                hint = f"did you mean {' or '.join(near)}?"
+            elif len(names) <= 12:
+                hint = f"the choices: {', '.join(names)}"
+            else:
+                hint = f"see {conf / group}/ for the choices"
+            raise ConfigError(f"{group}: unknown value {choice!r} (no {conf / group / choice}.yaml); {hint}")
 
 
 def train_main() -> None:
     """``ss-drl-train +experiment=NAME [key=value ...]`` (also ``-m`` sweeps): what scripts/train.py runs."""
+    from ss_drl.training.config import ConfigError
+
     try:
         conf = config_dir()
     except FileNotFoundError as exc:
         sys.exit(str(exc))
+    _refuse_on(lambda: check_group_choices(sys.argv[1:], conf), ConfigError)
     hydra.main(config_path=str(conf), config_name="config", version_base="1.3")(_train)()

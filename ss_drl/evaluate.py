@@ -13,13 +13,24 @@ from omegaconf import OmegaConf
 from ss_drl.training.outputs import CHECKPOINT_FILE
 
 
+class OldCheckpoint(ValueError):
+    """A checkpoint of another format (one written before the learners were renamed): ``str(err)`` is one line."""
+
+
 def load_agent(run_dir: Path):
-    """The trained agent and maze of a run directory, from its checkpoint."""
+    """The trained agent and maze of a run directory, from its checkpoint; :class:`OldCheckpoint` when the checkpoint
+    is of another format (its config names options and learners that this version does not have)."""
     from ss_drl.smart_start import CountModel
     from ss_drl.training import checkpoint as ckpt
     from ss_drl.training.trainer import make_agent, make_maze
 
+    path = Path(run_dir) / CHECKPOINT_FILE
     state = ckpt.load(run_dir)
+    problem = ckpt.format_problem(state, path)
+    if problem is not None:
+        if ckpt.written_before_rename(state):
+            problem += f": read it with a checkout of {ckpt.LAST_OLD_COMMIT}"
+        raise OldCheckpoint(problem)
     cfg = OmegaConf.create(state["config"])
     maze = make_maze(cfg.env)
     counts = CountModel(maze.n_cells)
@@ -41,7 +52,11 @@ def main(argv: list[str] | None = None) -> int:
     from ss_drl.training.figures import plot_policy
     from ss_drl.training.greedy import greedy_rollout
 
-    agent, maze, cfg = load_agent(args.run_dir)
+    try:
+        agent, maze, cfg = load_agent(args.run_dir)
+    except OldCheckpoint as exc:
+        print(f"evaluate.py: error: {exc}", file=sys.stderr)
+        return 2
     optimal = maze.shortest_path_length
     rollout = None
     for episode in range(1, args.episodes + 1):

@@ -28,6 +28,8 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
+from ss_drl.envs.maze import goal_reward
+
 STRATEGIES = ("future", "final", "episode", "random")
 
 
@@ -166,7 +168,7 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         row, env = index // self.num_envs, index % self.num_envs
         t, end = self._absolute_row(row), self.ep_end[row, env]
         end_slot = (end.clamp(min=0) % self.rows) * self.num_envs + env
-        reached = (end >= 0) & (self.achieved_goals(end_slot) == goal)
+        reached = (end >= 0) & goal_reward(self.achieved_goals(end_slot), goal)
         return torch.where(reached, end - t + 1, 0)
 
     def _relabel(self, data: TensorDictBase, index: torch.Tensor, n_her: int) -> torch.Tensor:
@@ -175,7 +177,7 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         new_goal, goal_steps = self.sample_goals(index[:n_her])
         # ``data`` is a gathered copy, so its leaves are relabeled in place (cheaper than tensordict writes).
         nxt = data.get("next")
-        reached = (nxt.get("observation")[:n_her] == new_goal).unsqueeze(-1)  # (n_her, 1), like the flags
+        reached = goal_reward(nxt.get("observation")[:n_her], new_goal).unsqueeze(-1)  # (n_her, 1), like the flags
         truncated = nxt.get("truncated")[:n_her] & ~reached
         data.get("desired_goal")[:n_her] = new_goal
         nxt.get("desired_goal")[:n_her] = new_goal
@@ -207,7 +209,7 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         in_episode = rows <= end.unsqueeze(1)
         slots = (torch.minimum(rows, end.unsqueeze(1)) % self.rows) * self.num_envs + env.unsqueeze(1)
         achieved = self.achieved_goals(slots)  # (B, n)
-        reached = (achieved == data.get("desired_goal").unsqueeze(1)) & in_episode
+        reached = goal_reward(achieved, data.get("desired_goal").unsqueeze(1)) & in_episode
         before = torch.cumsum(reached.long(), dim=1) - reached.long()  # goals reached before each step
         alive = in_episode & (before == 0)  # the window's steps
         m = alive.sum(dim=1)  # >= 1: step t itself is always in it

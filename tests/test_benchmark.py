@@ -171,73 +171,85 @@ def test_her_section_quick_times_the_stated_samples(monkeypatch):
     assert f"median of {samples} samples, median of {repeats} repeats" in text
 
 
+#: The TD target's switches (bounds and their modifiers) of ``DQNSettings``.
+SWITCHES = (
+    "hindsight_bound",
+    "n_step_max",
+    "distance_floor",
+    "distance_ceiling",
+    "bound_all_actions",
+    "model_targets",
+    "optimistic_floor",
+)
+
+
+def _learner_settings(maze: str, group: str):
+    from ss_drl.agents.settings import DQNSettings
+
+    return DQNSettings.from_config(compose_config([f"+experiment={maze}_ss_her", f"agent={group}"]).agent)
+
+
 def test_update_section_quick_times_the_stated_updates(monkeypatch):
-    """Every setting of the section is an agent with its options on, and each is timed for the same number of
-    updates (5 warm-up ones first); the ratios are the printed medians' quotients. The last row is the default
-    setting again with TorchRL's SoftUpdate stepping its target network in place of ss-drl's PolyakUpdate."""
+    """The rows are J, each learner of ``update.LEARNERS`` as its ``agent`` group composes it, and the model-bounded
+    one again with TorchRL's SoftUpdate stepping its target network in place of ss-drl's PolyakUpdate. Each row is an
+    agent built with those settings and timed for the same number of updates (5 warm-up ones first); "bounds on"
+    lists the switches on in its settings; the ratios are the printed medians' quotients."""
+    import dataclasses
+
     from ss_drl.agents.dqn import DQNAgent
+    from ss_drl.agents.settings import COUNT_MODEL_KEYS
+    from ss_drl.agents.targets import assumptions
 
     calls = []
     real_update = DQNAgent.update
 
     def counted(self):
-        on = (
-            self.hindsight_bound,
-            self.n_step_max,
-            self.distance_ceiling is not None,
-            self.distance_floor is not None,
-            self.bound_all_actions,
-            self.model_targets,
-            self.optimistic_floor,
-        )
-        calls.append((on, type(self.target_updater).__name__))
+        calls.append((self.settings, tuple(self.td_target.names), type(self.target_updater).__name__))
         return real_update(self)
 
     monkeypatch.setattr(DQNAgent, "update", counted)
     repeats, sizes = 2, cli.QUICK_SIZES["update"]
     text = run_main(["--section", "update", "--quick", "--repeats", str(repeats)])
     (rows,) = tables(text)
-    names = ["J", "L", "LM", "LMC", "LCF", "LCFA", "LCFAT", "LCFATO"]
-    assert [row["setting"] for row in rows] == [*names, "LCFATO, TorchRL SoftUpdate"]
-    expected_on = [
-        (False, False, False, False, False, False, False),
-        (True, False, False, False, False, False, False),
-        (True, True, False, False, False, False, False),
-        (True, True, True, False, False, False, False),
-        (True, False, True, True, False, False, False),
-        (True, False, True, True, True, False, False),
-        (True, False, True, True, True, True, False),
-        (True, False, True, True, True, True, True),
-    ]
-    for on, row in zip(expected_on, rows):
-        assert calls.count((on, "PolyakUpdate")) == 5 + repeats * sizes["updates"], row
-        assert row["bounds on"] == (
-            ", ".join(
-                n
-                for n, o in zip(
-                    (
-                        "hindsight_bound",
-                        "n_step_max",
-                        "distance_ceiling",
-                        "distance_floor",
-                        "bound_all_actions",
-                        "model_targets",
-                        "optimistic_floor",
-                    ),
-                    on,
-                )
-                if o
-            )
-            or "none"
-        )
+    groups = {name: group for name, group, _ in update.LEARNERS}
+    assert set(groups.values()) == {"dqn", "dqn_bounded"}  # the two learners, each from its agent group
+    assert [row["setting"] for row in rows] == ["J", *groups, update.SOFT_UPDATE]
+    learners = {name: _learner_settings(sizes["maze"], group) for name, group in groups.items()}
+    replay_only = next(learners[n] for n, g in groups.items() if g == "dqn")
+    bounded_name = next(n for n, g in groups.items() if g == "dqn_bounded")
+    assert set(assumptions(dataclasses.replace(replay_only, **dict.fromkeys(SWITCHES, True)))) == set(SWITCHES)
+    reference = dataclasses.replace(replay_only, **dict.fromkeys(SWITCHES, False))  # J: no switch on
+    expected = {
+        "J": (reference, "PolyakUpdate"),
+        **{name: (settings, "PolyakUpdate") for name, settings in learners.items()},
+        update.SOFT_UPDATE: (learners[bounded_name], "SoftUpdate"),
+    }
+    assert len(set(expected.values())) == len(rows)  # every row a distinct agent
+    stages = {"J": update.REFERENCE[1], **{name: stage for name, _, stage in update.LEARNERS}}
+    stages[update.SOFT_UPDATE] = stages[bounded_name]
+    names = {}
+    for row in rows:
+        settings, updater = expected[row["setting"]]
+        mine = [call for call in calls if call[0] == settings and call[2] == updater]
+        assert len(mine) == 5 + repeats * sizes["updates"], row
+        names[row["setting"]] = mine[0][1]
+        on = {key for key in SWITCHES if getattr(settings, key)}
+        if row["setting"] == update.SOFT_UPDATE:
+            assert row["bounds on"] == f"as {bounded_name}"
+        else:
+            assert (set() if row["bounds on"] == "none" else set(row["bounds on"].split(", "))) == on
+        assert set(mine[0][1]) <= on  # the TD target's bounds are switches that are on
+        assert row["stage"] == stages[row["setting"]]
         assert number(row["ms per update"]) > 0
         assert_quotient(row["vs J"], row["ms per update"], rows[0]["ms per update"])
-    reference = rows[-1]
-    assert calls.count((expected_on[-1], "SoftUpdate")) == 5 + repeats * sizes["updates"]
-    assert reference["bounds on"] == "as LCFATO" and number(reference["ms per update"]) > 0
-    assert_quotient(reference["vs J"], reference["ms per update"], rows[0]["ms per update"])
-    assert len(calls) == 9 * (5 + repeats * sizes["updates"])
+    assert len(calls) == len(rows) * (5 + repeats * sizes["updates"])
+    # J has no bound; the replay-only learner reads no count model; the model-bounded one does.
+    assert names["J"] == ()
+    replay_name = next(n for n, g in groups.items() if g == "dqn")
+    assert names[replay_name] and not set(names[replay_name]) & set(COUNT_MODEL_KEYS)
+    assert set(names[bounded_name]) & set(COUNT_MODEL_KEYS)
     assert f"on {sizes['maze']} ({sizes['transitions']:,} random-walk transitions stored" in text
+    assert f"batch {replay_only.batch_size};" in text
 
 
 def test_random_walk_batch_moves_as_the_maze_does():
@@ -270,7 +282,7 @@ def train_quick() -> str:
     return run_main(["--section", "train", "--quick", "--repeats", "1"])
 
 
-SB3_FORM_RUN = "`easy_dqn_her` agent.double_dqn=false agent.dueling=false (SB3's form)"
+SB3_FORM_RUN = "`easy_dqn_her` in SB3's form"
 BARE_RUN = "bare PyTorch update of SB3's network (no env, no buffer, no TorchRL): the eager-PyTorch ceiling"
 
 
@@ -305,6 +317,13 @@ def test_train_section_quick(train_quick):
     settings = {row[""]: row for row in parity}
     assert settings["env"]["ss-drl"] == f"`BatchedMazeEnv('easy', 1, max_steps={max_steps})`"
     assert settings["learning_starts"]["ss-drl"] == str(learning_starts)
+    # The run compared with SB3 is the replay-only learner: SB3 has no count-model bounds.
+    from ss_drl.methods import method_label
+
+    assert method_label(cfg) == "dqn_her"
+    assert settings["learner"]["ss-drl"].startswith("dqn_her (`easy_dqn_her`; bounds on: ")
+    form = bullet(train_quick, r"^- SB3's form \(.*\): `easy_dqn_her` (.*)$")[1].split()
+    assert form == list(train.sb3_form(cfg.agent))
     decisions = bullet(train_quick, r"^- `easy_ss_her`: (\d+) Smart Start decisions per run")
     assert int(decisions[1]) >= 1  # episodes of 100 steps: several episode starts after the first
     if not train.sb3_available():
@@ -343,6 +362,40 @@ def test_train_section_without_sb3_notes_it(monkeypatch):
     assert "stable-baselines3 is not installed, so the SB3 rows are skipped" in text
     assert len(rows) == 3 and not any("SB3 `DQN`" in run for run in rows)
     assert "ratio ours/SB3" not in text
+
+
+@pytest.mark.parametrize("experiment", ["easy_dqn_her", "easy_dqn_her_bounded"])
+def test_sb3_form_is_the_plain_one_step_target_without_bounds(experiment):
+    """In SB3's form a learner keeps its network width, batch and schedule but loses every bound, the double-DQN
+    target, the dueling head, n-step returns and clipping: the arithmetic of SB3's DQN update."""
+    import dataclasses
+
+    from ss_drl.agents.settings import DQNSettings
+
+    ours = DQNSettings.from_config(compose_config([f"+experiment={experiment}"]).agent)
+    form = train.sb3_form(compose_config([f"+experiment={experiment}"]).agent)
+    theirs = DQNSettings.from_config(compose_config([f"+experiment={experiment}", *form]).agent)
+    assert not any(getattr(theirs, key) for key in SWITCHES)
+    assert (theirs.double_dqn, theirs.dueling, theirs.n_step, theirs.clip_targets) == (False, False, 1, False)
+    assert theirs.loss == "smooth_l1"
+    changed = {f.name for f in dataclasses.fields(ours) if getattr(ours, f.name) != getattr(theirs, f.name)}
+    assert changed <= {*SWITCHES, "double_dqn", "dueling", "n_step", "clip_targets", "loss"}
+
+
+@pytest.mark.parametrize(("train_freq", "gradient_steps"), [(1, 1), (4, 1), (1, 4), (2, 3)])
+def test_sb3_target_update_moves_the_target_at_ss_drl_rate(train_freq, gradient_steps):
+    """SB3 updates its target at most once per env step, ss-drl once per update: over the same env steps both move
+    the target network by the same Polyak weight, and hard copies come after the same number of updates."""
+    from omegaconf import OmegaConf
+
+    tau, copies = 0.005, 100
+    base = dict(train_freq=train_freq, gradient_steps=gradient_steps, tau=tau, target_update_interval=copies)
+    interval, sb3_tau = train.sb3_target_update(OmegaConf.create(dict(base, target_update="soft")))
+    assert interval >= 1 and 0 < sb3_tau <= 1
+    updates = interval * gradient_steps / train_freq  # ss-drl's updates in one SB3 target-update interval
+    assert math.isclose(1 - sb3_tau, (1 - tau) ** updates, rel_tol=1e-12)
+    interval, sb3_tau = train.sb3_target_update(OmegaConf.create(dict(base, target_update="hard")))
+    assert sb3_tau == 1.0 and interval == copies * train_freq // gradient_steps
 
 
 # --- command line -----------------------------------------------------------------------------------------------------

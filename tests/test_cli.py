@@ -159,6 +159,58 @@ def test_refused_resume_leaves_the_existing_run_untouched(tmp_path, resume):
     assert left == ["existing_run"], f"a refused run left {left} behind (outputs/<experiment>/seed<seed>/<time>/?)"
 
 
+def train_script(cwd: Path, *overrides: str) -> subprocess.CompletedProcess:
+    """scripts/train.py run from ``cwd`` (where Hydra's default run directory, outputs/..., would go)."""
+    command = [sys.executable, str(ROOT / "scripts" / "train.py"), *overrides]
+    return subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=600)
+
+
+def test_unknown_experiment_is_one_line_and_leaves_nothing(tmp_path):
+    """Hydra's own report of an unknown config group choice runs to one line per shipped experiment; the choice is
+    refused before Hydra composes anything: one line naming the group and the value, exit 2, no run directory."""
+    run_dir = tmp_path / "run"
+    proc = train_script(tmp_path, "+experiment=no_such_name", f"hydra.run.dir={run_dir}")
+    assert proc.returncode == 2, proc.stderr
+    (line,) = proc.stderr.strip().splitlines()
+    assert line.startswith("ss-drl: config error: experiment: unknown value 'no_such_name'"), line
+    assert str(ROOT / "conf" / "experiment") in line
+    assert not run_dir.exists() and list(tmp_path.iterdir()) == [], "a refused run left files behind"
+    # A near miss names what was meant; a sweep list is checked item by item, before the sweep directory exists.
+    proc = train_script(tmp_path, "+experiment=easy_ss_herr", f"hydra.run.dir={run_dir}")
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().endswith("did you mean easy_ss_her or easy_small_ss_her or easy_dqn_her?"), proc.stderr
+    sweep_dir = tmp_path / "sweep"
+    proc = train_script(tmp_path, "-m", "+experiment=easy_small_dqn,nosuch", f"hydra.sweep.dir={sweep_dir}")
+    assert proc.returncode == 2, proc.stderr
+    (line,) = proc.stderr.strip().splitlines()
+    assert line.startswith("ss-drl: config error: experiment: unknown value 'nosuch'"), line
+    assert list(tmp_path.iterdir()) == [], "a refused sweep left files behind"
+
+
+def test_a_refusal_inside_the_job_removes_what_hydra_wrote(tmp_path):
+    """``trainer.resume=<dir>`` runs Hydra in outputs/<experiment>/seed<seed>/<time> under the working directory.
+    A resume that only the job itself can refuse (here: eval.csv has another column layout) exits with one line and
+    leaves neither that directory (.hydra/, cli.log) nor a changed run behind."""
+    from helpers import compose_cfg
+
+    from ss_drl.training.trainer import Trainer
+
+    run = tmp_path / "run"
+    Trainer(compose_cfg("+experiment=easy_small_dqn_her", *TINY), run).train()
+    header, *rows = (run / EVAL_FILE).read_text().split("\n")
+    (run / EVAL_FILE).write_text("\n".join([header.replace(",wall_s", ""), *rows]))  # as if from another version
+    before = snapshot(run)
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    resume = ["trainer.total_env_steps=400", f"trainer.resume={run}"]
+    proc = train_script(cwd, "+experiment=easy_small_dqn_her", *TINY, *resume)
+    assert proc.returncode == 1, proc.stderr
+    (line,) = proc.stderr.strip().splitlines()
+    assert line.startswith("ss-drl: ValueError: trainer.resume: eval.csv has columns"), line
+    assert snapshot(run) == before, "a refused resume changed the run"
+    assert list(cwd.iterdir()) == [], f"a refused run left {sorted(p.name for p in cwd.rglob('*'))} behind"
+
+
 # --- (c) Smart Start fills the ss_* columns and draws its figure ---
 def test_smart_start_run(ss_run):
     run_dir, proc = ss_run

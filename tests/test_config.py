@@ -7,9 +7,11 @@ from pathlib import Path
 
 import pytest
 import yaml
-from hydra import compose, initialize_config_dir
+from helpers import compose_cfg as compose
 from omegaconf import OmegaConf
 
+from ss_drl.agents.settings import COUNT_MODEL_KEYS
+from ss_drl.methods import method_label
 from ss_drl.training.config import ConfigError, validate_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -17,6 +19,15 @@ CONF = ROOT / "conf"
 EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
 YAML_FILES = sorted(CONF.rglob("*.yaml"))
 BASE = "easy_small_dqn_her"  # a DQN experiment, so that the DQN-only rules (batch vs buffer) apply
+
+#: The deep methods: the replay-only DQN (``<method>``) and the model-bounded one (``<method>_bounded``).
+REPLAY_ONLY = ("dqn", "dqn_her", "ss", "ss_her")
+BOUNDED = tuple(f"{method}_bounded" for method in REPLAY_ONLY)
+METHODS = (*REPLAY_ONLY, *BOUNDED, "tabular", "tabular_ss")
+MAZES = ("easy", "medium", "hard", "extreme", "easy_small", "medium_small", "hard_small")
+#: Every switch of the DQN learner that reads the count model (those that make a learner the model-bounded one, and
+#: the two that only refine them).
+COUNT_MODEL_SWITCHES = ("distance_floor", "distance_ceiling", "model_targets", "bound_all_actions", "optimistic_floor")
 
 STABLE_KEYS = (
     "seed",
@@ -32,13 +43,13 @@ STABLE_KEYS = (
 
 
 def compose_cfg(experiment: str = BASE, overrides: tuple[str, ...] | list[str] = ()):
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose("config", overrides=[f"+experiment={experiment}", *overrides])
+    """The config of ``+experiment=<experiment>`` with ``overrides``, as scripts/train.py would compose it."""
+    return compose(f"+experiment={experiment}", *overrides)
 
 
 def method_of(name: str) -> str:
-    """The method suffix of an experiment name: easy_small_ss_her -> ss_her."""
-    for method in ("tabular_ss", "tabular", "dqn_her", "dqn", "ss_her", "ss"):
+    """The method suffix of an experiment name: easy_small_ss_her -> ss_her, hard_dqn_bounded -> dqn_bounded."""
+    for method in sorted(METHODS, key=len, reverse=True):  # the longest first: ss_her_bounded before ss_her and ss
         if name.endswith("_" + method):
             return method
     raise AssertionError(f"experiment {name!r} has no known method suffix")
@@ -56,7 +67,17 @@ def assert_config_error(cfg, key: str, value) -> str:
 
 # --- (a) every experiment composes and validates ---
 def test_experiments_found():
+    """Every ``<maze>_<method>`` exists for the 7 shipped mazes and the 10 methods, and nothing else."""
+    assert len(METHODS) == 10 and len(MAZES) == 7
     assert EXPERIMENTS == sorted(f"{maze}_{method}" for maze in MAZES for method in METHODS)
+
+
+def test_method_of_reads_the_longest_suffix():
+    assert method_of("easy_small_ss_her_bounded") == "ss_her_bounded"
+    assert method_of("hard_ss") == "ss"
+    assert method_of("medium_tabular_ss") == "tabular_ss"
+    with pytest.raises(AssertionError):
+        method_of("easy_ppo")
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
@@ -64,43 +85,77 @@ def test_experiment_composes_and_validates(name):
     cfg = compose_cfg(name)
     validate_config(cfg)
     assert cfg.experiment == name
+    assert "method" not in cfg, "the method label is derived from the config (ss_drl/methods.py), never declared"
     for key in STABLE_KEYS:
         assert OmegaConf.select(cfg, key, default="<missing>") != "<missing>", f"{name}: {key} missing"
     method = method_of(name)
-    assert cfg.method == method
+    assert method_label(cfg) == method, f"{name} resolves to the method {method_label(cfg)!r}"
     assert name == f"{cfg.env.preset}_{method}"
     assert cfg.env.layout is None
     assert cfg.env.max_steps == 1000
-    if method in ("ss", "ss_her", "tabular_ss"):
+    base = method.removesuffix("_bounded")
+    if base in ("ss", "ss_her", "tabular_ss"):
         assert cfg.smart_start.eta == 1
         assert cfg.smart_start.c_ss == pytest.approx(0.1)
-    if method in ("dqn", "dqn_her", "tabular"):
+    if base in ("dqn", "dqn_her", "tabular"):
         assert cfg.smart_start.eta == 0
-    if method in ("dqn", "ss", "tabular", "tabular_ss"):
+    if base in ("dqn", "ss", "tabular", "tabular_ss"):
         assert cfg.her.k == 0
-    if method in ("dqn_her", "ss_her"):
+    if base in ("dqn_her", "ss_her"):
         assert cfg.her.k > 0
         assert cfg.her.strategy == "future"
     assert cfg.agent.name == ("tabular" if method.startswith("tabular") else "dqn")
 
 
-METHODS = ("dqn", "dqn_her", "ss", "ss_her", "tabular", "tabular_ss")
-MAZES = ("easy", "easy_small", "medium_small", "medium", "hard_small", "hard", "extreme")
+def _settings(cfg) -> dict:
+    settings = {group: OmegaConf.to_container(cfg[group], resolve=True) for group in ("agent", "her", "smart_start")}
+    settings["frames_per_batch"] = cfg.trainer.frames_per_batch
+    return settings
 
 
 @pytest.mark.parametrize("method", METHODS)
 def test_a_method_is_the_same_setting_on_every_maze(method):
-    """One setting per method: the experiments of a method resolve to the same agent, HER and Smart Start settings on
-    every maze, so a maze's result is the method's, not a tuning's."""
-    settings = {}
-    for maze in MAZES:
-        cfg = compose_cfg(f"{maze}_{method}")
-        settings[maze] = {group: OmegaConf.to_container(cfg[group]) for group in ("agent", "her", "smart_start")}
-        settings[maze]["frames_per_batch"] = cfg.trainer.frames_per_batch
+    """One setting per method and learner: the experiments of a method resolve to the same agent, HER and Smart Start
+    settings on every shipped maze, so a maze's result is the method's, not a tuning's."""
+    settings = {maze: _settings(compose_cfg(f"{maze}_{method}")) for maze in MAZES}
     first = settings[MAZES[0]]
     for maze in MAZES[1:]:
         diff = {k: (first[k], v) for k, v in settings[maze].items() if first[k] != v}
         assert not diff, f"{maze}_{method} differs from {MAZES[0]}_{method}: {diff}"
+
+
+@pytest.mark.parametrize("maze", MAZES)
+def test_the_replay_only_dqn_uses_no_count_model_bound_and_the_bounded_one_all(maze):
+    """``<maze>_{dqn,dqn_her,ss,ss_her}`` is the replay-only DQN: no switch that reads the count model is on.
+    ``<maze>_<method>_bounded`` is the model-bounded DQN: every one is on. The two differ in nothing else than the
+    bounds (and the k-step maximum, which the bounded one drops), and each learner is one setting for all four
+    methods."""
+    assert set(COUNT_MODEL_KEYS) <= set(COUNT_MODEL_SWITCHES)
+    agents = {}
+    for method in (*REPLAY_ONLY, *BOUNDED):
+        agent = OmegaConf.to_container(compose_cfg(f"{maze}_{method}").agent, resolve=True)
+        on = {key: agent[key] for key in COUNT_MODEL_SWITCHES}
+        if method in REPLAY_ONLY:
+            assert not any(on.values()), f"{maze}_{method} (replay-only) has count-model switches on: {on}"
+        else:
+            assert all(value is True for value in on.values()), f"{maze}_{method} has count-model switches off: {on}"
+        agents[method] = agent
+    for method in REPLAY_ONLY:  # one agent setting per learner, the same with or without HER and Smart Start
+        assert agents[method] == agents[REPLAY_ONLY[0]]
+        assert agents[f"{method}_bounded"] == agents[BOUNDED[0]]
+    replay_only, bounded = agents[REPLAY_ONLY[0]], agents[BOUNDED[0]]
+    differ = sorted(key for key in replay_only if replay_only[key] != bounded[key])
+    assert differ == sorted((*COUNT_MODEL_SWITCHES, "n_step_max")), differ
+
+
+@pytest.mark.parametrize("method", REPLAY_ONLY)
+def test_a_bounded_method_is_its_replay_only_method_with_the_other_learner(method):
+    """``<method>_bounded`` runs the same HER and Smart Start as ``<method>``: only the learner differs."""
+    for maze in MAZES:
+        replay_only = _settings(compose_cfg(f"{maze}_{method}"))
+        bounded = _settings(compose_cfg(f"{maze}_{method}_bounded"))
+        del replay_only["agent"], bounded["agent"]
+        assert replay_only == bounded, f"{maze}_{method} and {maze}_{method}_bounded differ beyond the learner"
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
@@ -115,10 +170,13 @@ def test_an_experiment_only_picks_a_maze_and_a_method(name):
 
 
 def test_the_smart_start_and_agent_group_defaults_are_the_deep_methods_settings():
-    """No experiment or method overrides the dqn agent or Smart Start group: their defaults are the setting."""
-    for method in ("dqn", "dqn_her", "ss", "ss_her"):
+    """No deep method sets a value of its own: it picks the learner (agent=dqn or agent=dqn_bounded), HER and Smart
+    Start, whose group defaults are the setting; and it declares no label (ss_drl/methods.py derives it)."""
+    for method in (*REPLAY_ONLY, *BOUNDED):
         text = yaml.safe_load((CONF / "method" / f"{method}.yaml").read_text())
-        assert set(text) == {"defaults", "method"}, f"method/{method}.yaml sets more than its groups"
+        assert set(text) == {"defaults"}, f"method/{method}.yaml sets more than its groups"
+        learner = "dqn_bounded" if method.endswith("_bounded") else "dqn"
+        assert {"override /agent": learner} in text["defaults"], f"method/{method}.yaml does not pick agent={learner}"
 
 
 # --- (b) every field carries a one-line comment ---
@@ -264,11 +322,6 @@ def test_optimistic_floor_needs_both_distance_bounds():
     assert_config_error(compose_cfg(overrides=["agent.optimistic_floor=on"]), "agent.optimistic_floor", "on")
 
 
-@pytest.mark.parametrize("lr_end", ["0", "-0.001", "fast"])
-def test_lr_end_must_be_a_positive_number(lr_end):
-    assert_config_error(compose_cfg(overrides=[f"agent.lr_end={lr_end}"]), "agent.lr_end", lr_end)
-
-
 def test_unknown_encoder():
     message = assert_config_error(compose_cfg(overrides=["agent.encoder=pixels"]), "agent.encoder", "pixels")
     for allowed in ("embedding", "coords", "hybrid"):
@@ -276,14 +329,23 @@ def test_unknown_encoder():
     validate_config(compose_cfg(overrides=["agent.encoder=hybrid"]))
 
 
-def test_eval_network_is_online_target_or_average():
-    assert_config_error(compose_cfg(overrides=["agent.eval_network=polyak"]), "agent.eval_network", "polyak")
+@pytest.mark.parametrize("value", ["polyak", "average"])
+def test_eval_network_is_online_or_target(value):
+    """``average`` (with ``eval_tau``) was deleted: it is refused like any other unknown value, naming the choices."""
+    message = assert_config_error(compose_cfg(overrides=[f"agent.eval_network={value}"]), "agent.eval_network", value)
+    assert "online" in message and "target" in message
+    for allowed in ("online", "target"):
+        validate_config(compose_cfg(overrides=[f"agent.eval_network={allowed}"]))
 
 
-@pytest.mark.parametrize("eval_tau", ["0", "1.5", "slow"])
-def test_eval_tau_must_be_a_rate_when_the_average_is_evaluated(eval_tau):
-    cfg = compose_cfg(overrides=["agent.eval_network=average", f"agent.eval_tau={eval_tau}"])
-    assert_config_error(cfg, "agent.eval_tau", eval_tau)
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("lr_end", "0.0001"), ("eval_tau", "0.01"), ("advantage_learning", "true")],
+)
+def test_deleted_options_are_refused(key, value):
+    """A deleted option given with ``+`` (the composed config no longer has it) is refused, naming the key."""
+    assert key not in compose_cfg().agent
+    assert_config_error(compose_cfg(overrides=[f"+agent.{key}={value}"]), f"agent.{key}", "not a setting")
 
 
 @pytest.mark.parametrize("eta", ["-0.1", "1.5"])
@@ -356,3 +418,28 @@ def test_batch_larger_than_buffer():
     message = assert_config_error(cfg, "agent.batch_size", "64")
     assert "agent.buffer_size" in message and "32" in message
     validate_config(compose_cfg(overrides=["agent.batch_size=32", "agent.buffer_size=32"]))
+
+
+# --- (d) a config group choice that names no file: one line before Hydra composes anything ---
+def test_an_unknown_group_choice_is_refused_naming_the_group():
+    from ss_drl.cli import check_group_choices
+
+    def refused(*argv: str) -> str:
+        with pytest.raises(ConfigError) as info:
+            check_group_choices(list(argv), CONF)
+        message = str(info.value)
+        assert "\n" not in message, message
+        return message
+
+    message = refused("+experiment=no_such_name", "seed=1")
+    assert message.startswith("experiment: unknown value 'no_such_name' (no ") and str(CONF / "experiment") in message
+    assert refused("agent=dqn_bound").endswith("did you mean dqn_bounded?")
+    assert "'medum_ss'" in refused("-m", "+experiment=easy_ss,medum_ss")  # sweep lists: item by item
+    assert "the choices: " in refused("+experiment=easy_ss", "her=sometimes")  # a small group lists its choices
+    for ok in (
+        ["+experiment=easy_ss_her_bounded", "agent=dqn", "agent.lr=0.01", "env.layout=x.txt"],
+        ["-m", "+experiment=easy_ss,easy_ss_her", "seed=range(3)", "+experiment@x=glob(*)"],
+        ["hydra/launcher=submitit_local", "hydra.run.dir=/tmp/x=y"],  # Hydra's own groups are Hydra's to check
+        ["--config-dir", "/elsewhere", "+experiment=only_there"],  # another search path: Hydra's to check
+    ):
+        check_group_choices(ok, CONF)

@@ -276,6 +276,14 @@ def test_diagnose_run_errors(tmp_path):
     (tmp_path / "checkpoint.pt").write_text("not a checkpoint")
     with pytest.raises(DiagnoseError, match="cannot load"):
         diagnose_run(tmp_path)
+    # A checkpoint from before the learners were renamed (no format marker): one line saying so, not a schema error.
+    torch.save({"config": {"method": "ss_her", "agent": {"name": "dqn", "lr_end": None}}}, tmp_path / "checkpoint.pt")
+    with pytest.raises(DiagnoseError) as old:
+        diagnose_run(tmp_path)
+    assert str(old.value) == (
+        f"{tmp_path / 'checkpoint.pt'} was written before the learners were renamed (docs/migration.md): read it "
+        "with a checkout of 7ac5009"
+    )
 
 
 def run_script(*args):

@@ -1,8 +1,15 @@
-"""The goal-conditioned DQN: GoalDQNLoss equals TorchRL's DQNLoss, target updates reach the lean target network."""
+"""The goal-conditioned DQN: GoalDQNLoss equals TorchRL's DQNLoss, target updates reach the lean target network, and
+the TD target's parts (``ss_drl/agents/targets.py``), as the agent builds them, give the targets computed by hand.
+
+The target tests build a batch, read the targets through the agent's own parts (``agent.td_target.taken`` and
+``.others`` with ``agent.loss.bootstrap``, each bound's ``lower``/``upper``/``lower_all``/``upper_all``) and compare
+them with numbers written out or computed here from the maze's geometry, then compare ``agent.loss(batch)`` with the
+loss composed by hand from those numbers. Where a target network's values are needed they are a hand table
+(:func:`use_table`): that is input, not a reading of the code.
+"""
 
 from __future__ import annotations
 
-import io
 import warnings
 from functools import partial
 
@@ -15,7 +22,10 @@ from torchrl.data import Categorical
 from torchrl.modules import QValueActor
 from torchrl.objectives import DQNLoss, SoftUpdate
 
-from ss_drl.agents.dqn import DQNAgent, PolyakUpdate
+from ss_drl.agents.dqn import DQNAgent, PolyakUpdate, value_range
+from ss_drl.agents.network import CellEncoder
+from ss_drl.agents.settings import DQNSettings
+from ss_drl.agents.targets import DistanceCeiling, DistanceFloor, HindsightBound, KStepMax, make_td_target
 from ss_drl.envs.maze import load_maze
 from ss_drl.her import HindsightReplayBuffer
 from ss_drl.smart_start import CountModel
@@ -31,22 +41,87 @@ PLAIN = {  # TD(0) on 0/1 rewards with hard target copies: the setting the hand 
     "agent.n_step_max": "false",
     **dict(o.split("=", 1) for o in NO_COUNT_MODEL),
 }
+#: The shortest-path form (-1 per step, 0 on entering the goal, no discount) with the target network's max.
+SHORTEST_PATH = ("agent.step_cost=1", "agent.gamma=1", "agent.double_dqn=false")
+INF = float("inf")
+
+
+def agent_settings(*overrides: str):
+    """The composed config and the typed settings of ``+experiment=easy_small_dqn_her`` with :data:`PLAIN` and
+    ``overrides``."""
+    settings = dict(PLAIN, **dict(o.split("=", 1) for o in overrides))
+    cfg = compose_cfg("+experiment=easy_small_dqn_her", *(f"{k}={v}" for k, v in settings.items()))
+    return cfg, DQNSettings.from_config(cfg.agent)
 
 
 def make_agent(*overrides: str, counts: CountModel | None = None) -> DQNAgent:
-    settings = dict(PLAIN, **dict(o.split("=", 1) for o in overrides))
-    cfg = compose_cfg("+experiment=easy_small_dqn_her", *(f"{k}={v}" for k, v in settings.items()))
+    """The agent as the trainer builds it (``ss_drl.training.trainer.make_agent``): typed settings, a HER buffer
+    that records what the bounds need, and the TD target with the count model ``counts``."""
+    cfg, settings = agent_settings(*overrides)
     maze = load_maze("easy_small")
     buffer = HindsightReplayBuffer(
         1000,
         1,
-        cfg.agent.batch_size,
+        settings.batch_size,
         k=0,
-        goal_steps=cfg.agent.hindsight_bound,
-        window_states=cfg.agent.n_step_max,
+        n_step=settings.n_step,
+        gamma=settings.gamma,
+        goal_steps=settings.hindsight_bound,
+        window_states=settings.n_step_max,
     )
+    max_steps = cfg.env.max_steps
+    clip = value_range(settings.gamma, settings.step_cost, max_steps) if settings.clip_targets else None
+    td_target = make_td_target(settings, maze, counts, clip or None)
     torch.manual_seed(0)
-    return DQNAgent(cfg.agent, maze, buffer, counts=counts)
+    return DQNAgent(settings, maze, buffer, td_target, max_steps=max_steps)
+
+
+def bound(agent: DQNAgent, kind: type):
+    """The agent's one bound of type ``kind``."""
+    (found,) = [b for b in agent.td_target.bounds if type(b) is kind]
+    return found
+
+
+def use_table(agent: DQNAgent, v: torch.Tensor) -> None:
+    """Make the target network a table: V(s) for every action of s (so its max, and any action's value, is V)."""
+    agent.loss.target_value_network = lambda obs, goal: v[obs].unsqueeze(-1).expand(*obs.shape, 4)
+
+
+def cell_table(n_cells: int, values: dict[int, float], default: float = 0.0) -> torch.Tensor:
+    table = torch.full((n_cells,), default)
+    for cell, value in values.items():
+        table[cell] = value
+    return table
+
+
+def hand_batch(obs, action, goal, next_obs, reward=None, terminated=None, n_steps=1, **extra) -> TensorDict:
+    """A batch written out sample by sample (the next goal is the goal; reward 0 and live unless given; ``extra``:
+    further keys, each a list with one entry per sample)."""
+    size = len(obs)
+    reward = torch.zeros(size, 1) if reward is None else torch.tensor(reward, dtype=torch.float32).unsqueeze(-1)
+    terminated = (
+        torch.zeros(size, 1, dtype=torch.bool) if terminated is None else torch.tensor(terminated).unsqueeze(-1)
+    )
+    steps = torch.as_tensor(n_steps).expand(size).reshape(size, 1).clone()
+    return TensorDict(
+        {
+            "observation": torch.tensor(obs),
+            "desired_goal": torch.tensor(goal),
+            "action": torch.tensor(action),
+            "relabeled": torch.zeros(size, dtype=torch.bool),
+            "n_steps": steps,
+            **{key: torch.tensor(value) for key, value in extra.items()},
+            "next": {
+                "observation": torch.tensor(next_obs),
+                "desired_goal": torch.tensor(goal),
+                "reward": reward,
+                "terminated": terminated,
+                "truncated": torch.zeros_like(terminated),
+                "done": terminated.clone(),
+            },
+        },
+        batch_size=(size,),
+    )
 
 
 def random_batch(n_cells: int, size: int = 64, seed: int = 0) -> TensorDict:
@@ -72,6 +147,32 @@ def random_batch(n_cells: int, size: int = 64, seed: int = 0) -> TensorDict:
     )
 
 
+def taken(agent: DQNAgent, batch: TensorDict) -> torch.Tensor:
+    """(B,) the taken action's target, through the agent's own parts."""
+    with torch.no_grad():
+        return agent.td_target.taken(batch, agent.loss.bootstrap).squeeze(-1)
+
+
+def predictions(agent: DQNAgent, batch: TensorDict) -> torch.Tensor:
+    """(B, 4) the online network's Q of the batch's states and goals."""
+    with torch.no_grad():
+        return agent.q_network(batch["observation"], batch["desired_goal"])
+
+
+def td_loss(agent: DQNAgent, batch: TensorDict, y: torch.Tensor) -> torch.Tensor:
+    """The l2 loss of the taken actions' predictions against the targets ``y`` (B,), by hand."""
+    q = predictions(agent, batch)
+    return ((q[torch.arange(q.shape[0]), batch["action"]] - y) ** 2).mean()
+
+
+def others_loss(q: torch.Tensor, held: torch.Tensor, taken_action: torch.Tensor) -> torch.Tensor:
+    """The other actions' term by hand: the squared distance of every action but the taken one to what it is held
+    to, summed over the actions, averaged over the batch."""
+    others = torch.ones_like(q, dtype=torch.bool)
+    others[torch.arange(q.shape[0]), taken_action] = False
+    return ((q - held) ** 2 * others).sum(-1).mean()
+
+
 def reference_loss(agent: DQNAgent, batch: TensorDict) -> torch.Tensor:
     """TorchRL's own ``DQNLoss`` on the agent's network: same parameters, a copy of the agent's target parameters."""
     keys = ["observation", "desired_goal"]
@@ -82,7 +183,7 @@ def reference_loss(agent: DQNAgent, batch: TensorDict) -> torch.Tensor:
         reference = DQNLoss(
             actor, delay_value=True, double_dqn=agent.loss.double_dqn, loss_function=agent.loss.loss_function
         )
-        reference.make_value_estimator(gamma=agent.loss.gamma)
+        reference.make_value_estimator(gamma=agent.settings.gamma)
         theirs = reference.target_value_network_params
         for key, value in agent.loss.target_value_network_params.items(True, True):
             theirs.get(("module", "0", "module", *key)).data.copy_(value)
@@ -203,40 +304,51 @@ def test_env_scale_maps_step_cost_values_to_the_env_reward_scale(step_cost):
     torch.testing.assert_close(agent.env_scale(never), torch.zeros(1, dtype=torch.float64))
 
 
-def test_step_cost_is_subtracted_from_the_reward_the_loss_sees():
-    plain, costly = make_agent("agent.step_cost=0"), make_agent("agent.step_cost=1")
-    costly.q_network.load_state_dict(plain.q_network.state_dict())
-    costly.loss.target_value_network.network.load_state_dict(plain.loss.target_value_network.network.state_dict())
-    batch = random_batch(plain.maze.n_cells)
-    shifted = batch.clone()
-    shifted.set(("next", "reward"), batch.get(("next", "reward")) - 1)
-    seen = []
-    costly.loss.forward = lambda td: seen.append(td.get(("next", "reward")).clone()) or plain.loss(td)
-    costly.replay_buffer.sample = lambda: batch.clone()
-    costly.update()
-    torch.testing.assert_close(seen[0], shifted.get(("next", "reward")))
+#: Target-network values V(s) per cell for the hand computations (every action the same, so max = V); 0 elsewhere.
+V = {1: -10.0, 2: -4.0, 3: -9.0, 4: -5.0, 5: 0.0, 6: -1.0, 7: -20.0}
 
 
-def test_advantage_learning_target_by_hand():
-    alpha = 0.75
-    agent = make_agent(f"agent.advantage_learning={alpha}", "agent.double_dqn=false", "agent.loss=l2")
-    with torch.no_grad():
-        for p in agent.loss.target_value_network_params.values(True, True):
-            p.add_(0.05 * torch.randn_like(p))
-    batch = random_batch(agent.maze.n_cells)
-    online, target, gamma = agent.q_network, agent.loss.target_value_network, agent.cfg.gamma
-    with torch.no_grad():
-        obs, goal, action = batch["observation"], batch["desired_goal"], batch["action"]
-        q_t = target(obs, goal)
-        gap = q_t.max(-1).values - q_t[torch.arange(64), action]
-        nxt = batch["next"]
-        bootstrap = target(nxt["observation"], nxt["desired_goal"]).max(-1).values
-        y = nxt["reward"].squeeze(-1) + gamma * (~nxt["terminated"].squeeze(-1)) * bootstrap - alpha * gap
-        expected = ((online(obs, goal)[torch.arange(64), action] - y) ** 2).mean()
-    torch.testing.assert_close(agent.loss(batch.clone())["loss"], expected)
-    # alpha = 0 is TorchRL's DQNLoss again
-    agent.loss.advantage_learning = 0.0
-    torch.testing.assert_close(agent.loss(batch.clone())["loss"], reference_loss(agent, batch))
+@pytest.mark.parametrize(("step_cost", "expected"), [(0, [-9.5, -3.8, 1.0, -4.75]), (1, [-10.5, -4.8, 0.0, -5.75])])
+def test_step_cost_is_subtracted_from_the_reward_the_target_sees(step_cost, expected):
+    """TD(0), gamma 0.95: the target is r - step_cost + 0.95 V(s') on a live step and r - step_cost on the terminal
+    one (which entered the goal, r = 1): with V(1) = -10, V(2) = -4, V(4) = -5."""
+    agent = make_agent(f"agent.step_cost={step_cost}", "agent.double_dqn=false")
+    use_table(agent, cell_table(agent.maze.n_cells, V))
+    batch = hand_batch(
+        obs=[0, 1, 11, 3],
+        action=[0, 1, 2, 3],
+        goal=[10] * 4,
+        next_obs=[1, 2, 10, 4],
+        reward=[0, 0, 1, 0],
+        terminated=[False, False, True, False],
+    )
+    torch.testing.assert_close(taken(agent, batch), torch.tensor(expected))
+    torch.testing.assert_close(agent.loss(batch)["loss"], td_loss(agent, batch, torch.tensor(expected)))
+
+
+def test_step_cost_counts_every_step_of_the_n_step_window():
+    """Three-step windows, gamma 0.5, step cost 1: the learner's return is the env's discounted return R minus
+    1 + 0.5 + 0.25 = 1.75, and a live window bootstraps with 0.5^3 = 0.125:
+
+    a. R = 0, live, V(s_(t+3)) = V(1) = -10: -1.75 - 1.25 = -3.0
+    b. the goal entered on the third step, R = 0.25, terminal: 0.25 - 1.75 = -1.5
+    c. R = 0, live, V(5) = 0: -1.75
+    d. R = 0, live, V(2) = -4: -1.75 - 0.5 = -2.25
+    """
+    agent = make_agent("agent.step_cost=1", "agent.gamma=0.5", "agent.n_step=3", "agent.double_dqn=false")
+    use_table(agent, cell_table(agent.maze.n_cells, V))
+    batch = hand_batch(
+        obs=[0, 8, 9, 11],
+        action=[0, 1, 2, 3],
+        goal=[10] * 4,
+        next_obs=[1, 10, 5, 2],
+        reward=[0, 0.25, 0, 0],
+        terminated=[False, True, False, False],
+        n_steps=3,
+    )
+    expected = torch.tensor([-3.0, -1.5, -1.75, -2.25])
+    torch.testing.assert_close(taken(agent, batch), expected)
+    torch.testing.assert_close(agent.loss(batch)["loss"], td_loss(agent, batch, expected))
 
 
 def test_n_step_target_discounts_by_gamma_to_the_window_length_by_hand():
@@ -257,37 +369,43 @@ def test_n_step_target_discounts_by_gamma_to_the_window_length_by_hand():
 
 def test_clip_targets_keeps_targets_in_the_feasible_range():
     agent = make_agent("agent.clip_targets=true", "agent.double_dqn=false", "agent.loss=l2")
-    assert agent.loss.value_range == (0.0, 1.0)  # 0/1 rewards: no value below 0 or above 1
+    assert agent.td_target.value_range == (0.0, 1.0)  # 0/1 rewards: no value below 0 or above 1
     with torch.no_grad():  # a target network whose values are far out of range
         agent.loss.target_value_network.network.advantage.bias.fill_(5.0)
         agent.loss.target_value_network.network.value.bias.fill_(5.0)
     batch = random_batch(agent.maze.n_cells)
-    with torch.no_grad():
-        pred = agent.q_network(batch["observation"], batch["desired_goal"])[torch.arange(64), batch["action"]]
     # Every bootstrapped target is clipped to 1, and a terminal one is its reward (1).
-    expected = ((pred - 1.0) ** 2).mean()
-    torch.testing.assert_close(agent.loss(batch.clone())["loss"], expected)
+    torch.testing.assert_close(taken(agent, batch), torch.ones(64))
+    torch.testing.assert_close(agent.loss(batch.clone())["loss"], td_loss(agent, batch, torch.ones(64)))
 
 
 @pytest.mark.parametrize(("step_cost", "gamma", "max_steps", "low"), [(1.0, 1.0, 50, -50.0), (1.0, 0.5, 3, -1.75)])
 def test_value_range_of_the_cost_form_by_hand(step_cost, gamma, max_steps, low):
-    agent = make_agent(f"agent.step_cost={step_cost}", f"agent.gamma={gamma}")
-    assert agent.value_range(max_steps) == (pytest.approx(low), 1.0 - step_cost)
+    assert value_range(gamma, step_cost, max_steps) == (pytest.approx(low), 1.0 - step_cost)
 
 
-def test_step_cost_counts_every_step_of_the_n_step_window():
-    agent = make_agent("agent.step_cost=1", "agent.gamma=0.5")
-    batch = random_batch(agent.maze.n_cells)
-    batch.set("n_steps", torch.full((64, 1), 3))
-    seen = []
-    agent.loss.forward = lambda td: (
-        seen.append(td.get(("next", "reward")).clone())
-        or TensorDict(loss=torch.zeros((), requires_grad=True), q_mean=torch.zeros(()), td_abs=torch.zeros(()))
+def test_an_agent_built_without_a_target_clips_to_its_own_episode_cut():
+    """``DQNAgent(..., td_target=None)`` builds the target from its settings: with ``clip_targets`` in the
+    shortest-path form the values of an episode cut at 50 steps, [-50, 0]: a target of -101 becomes -50, the step
+    that enters the goal keeps its 0."""
+    _, settings = agent_settings(*SHORTEST_PATH, "agent.clip_targets=true")
+    maze = load_maze("easy_small")
+    agent = DQNAgent(settings, maze, HindsightReplayBuffer(1000, 1, settings.batch_size), max_steps=50)
+    assert agent.td_target.value_range == (-50.0, 0.0)
+    use_table(agent, torch.full((maze.n_cells,), -100.0))
+    batch = hand_batch(
+        obs=[0, 1], action=[0, 1], goal=[10, 10], next_obs=[1, 10], reward=[0, 1], terminated=[False, True]
     )
-    agent.replay_buffer.sample = lambda: batch.clone()
-    agent.update()
-    # r - 1 on each of 3 steps, discounted: r_sum - (1 + 0.5 + 0.25)
-    torch.testing.assert_close(seen[0], batch["next", "reward"] - 1.75)
+    torch.testing.assert_close(taken(agent, batch), torch.tensor([-50.0, 0.0]))
+
+
+def test_count_model_bounds_refuse_an_agent_without_the_count_model():
+    _, settings = agent_settings("agent.distance_floor=true")
+    with pytest.raises(ValueError, match="count model"):
+        DQNAgent(settings, load_maze("easy_small"), HindsightReplayBuffer(1000, 1, settings.batch_size))
+    for switch in ("distance_floor", "distance_ceiling", "model_targets"):
+        with pytest.raises(ValueError, match="count model"):
+            make_agent(f"agent.{switch}=true")
 
 
 @pytest.mark.parametrize("eval_network", ["online", "target"])
@@ -312,57 +430,9 @@ def test_greedy_q_values_come_from_the_evaluated_network(eval_network):
     torch.testing.assert_close(agent.q_values(cells, goals), agent.env_scale(online).view(2, -1, 4))
 
 
-def test_evaluation_average_is_a_polyak_average_by_hand():
-    """``agent.eval_network=average``: starting from the initial weights, after every update
-    a_k = (1 - eval_tau) a_(k-1) + eval_tau o_k, with o_k the online weights after update k; the greedy answer is
-    that network's, and the target network still moves at ``tau`` (the average changes no training)."""
-    agent = make_agent("agent.target_update=soft", "agent.tau=0.5", "agent.eval_network=average", "agent.eval_tau=0.25")
-    agent.replay_buffer.extend(random_batch(agent.maze.n_cells).unsqueeze(1).expand(64, 1).clone())
-    expected = {k: v.clone() for k, v in agent.q_network.state_dict().items()}
-    target = {k: v.clone() for k, v in agent.q_network.state_dict().items()}
-    for _ in range(3):
-        agent.update()
-        online = agent.q_network.state_dict()
-        for name in expected:
-            if not name.endswith("encoder.scale"):  # constant buffers, not parameters
-                expected[name] = 0.75 * expected[name] + 0.25 * online[name]
-                target[name] = 0.5 * target[name] + 0.5 * online[name]
-    average = agent.eval_average.state_dict()
-    for name, value in expected.items():
-        torch.testing.assert_close(average[name], value)
-        torch.testing.assert_close(agent.loss.target_value_network.network.state_dict()[name], target[name])
-    assert not torch.allclose(average["advantage.weight"], agent.q_network.state_dict()["advantage.weight"])
-    cells, goals = torch.arange(agent.maze.n_cells), torch.tensor([agent.maze.goal_cell])
-    by_hand = agent.eval_average(cells, goals.expand_as(cells))
-    torch.testing.assert_close(agent.greedy_q_values(cells, goals)[0], agent.env_scale(by_hand))
-
-
-def test_checkpoint_round_trip_keeps_the_evaluation_average():
-    agent = make_agent("agent.eval_network=average", "agent.eval_tau=0.5")
-    agent.replay_buffer.extend(random_batch(agent.maze.n_cells).unsqueeze(1).expand(64, 1).clone())
-    for _ in range(2):
-        agent.update()
-    fresh = make_agent("agent.eval_network=average", "agent.eval_tau=0.5")
-    saved = io.BytesIO()  # through bytes, as a checkpoint file: an in-memory state would share the optimizer's tensors
-    torch.save(agent.state_dict(), saved)
-    saved.seek(0)
-    fresh.load_state_dict(torch.load(saved, weights_only=False))
-    cells, goals = torch.arange(agent.maze.n_cells), torch.tensor([agent.maze.goal_cell])
-    torch.testing.assert_close(fresh.greedy_q_values(cells, goals), agent.greedy_q_values(cells, goals))
-    assert not torch.allclose(fresh.greedy_q_values(cells, goals), fresh.q_values(cells, goals))
-    # The next update, on the same sample, moves both averages alike: averaging goes on from the restored weights.
-    batch = random_batch(agent.maze.n_cells, seed=1)
-    agent.replay_buffer.sample = fresh.replay_buffer.sample = lambda: batch.clone()
-    agent.update()
-    fresh.update()
-    torch.testing.assert_close(fresh.greedy_q_values(cells, goals), agent.greedy_q_values(cells, goals))
-
-
 def test_hybrid_encoder_starts_as_coords_and_learns_a_vector_per_cell():
     # At the start the per-cell table is zero, so the hybrid code is the coords MLP's. A gradient step on a loss at
     # some cells moves the table's rows of exactly those cells, by Adam's first step (lr times the gradient's sign).
-    from ss_drl.agents.dqn import CellEncoder
-
     maze = load_maze("easy_small")
     torch.manual_seed(0)
     encoder = CellEncoder(maze, "hybrid", 8)
@@ -384,179 +454,75 @@ def test_hybrid_encoder_starts_as_coords_and_learns_a_vector_per_cell():
 @pytest.mark.parametrize(
     ("step_cost", "gamma", "floors"),
     # goal_steps 0 (not known to be reached), 1 (entered on this step), 2, 5
-    [(1.0, 1.0, [-float("inf"), 0.0, -1.0, -4.0]), (0.0, 0.9, [-float("inf"), 1.0, 0.9, 0.6561])],
+    [(1.0, 1.0, [-INF, 0.0, -1.0, -4.0]), (0.0, 0.9, [-INF, 1.0, 0.9, 0.6561])],
 )
-def test_hindsight_floor_by_hand(step_cost, gamma, floors):
+def test_hindsight_bound_by_hand(step_cost, gamma, floors):
     """Reaching the goal k steps on: k - 1 steps of -1, then 0 on entering it (shortest-path form), or gamma^(k-1)
     with 0/1 rewards; nothing where the goal is not known to be reached."""
     agent = make_agent(f"agent.step_cost={step_cost}", f"agent.gamma={gamma}", "agent.hindsight_bound=true")
-    floor = agent.hindsight_floor(torch.tensor([[0], [1], [2], [5]]))
-    torch.testing.assert_close(floor, torch.tensor([floors]).T)
-
-
-def manhattan_to_goal(maze, cell: int) -> int:
-    """|cell - G|_1 on ``maze``'s grid: the steps to G in a grid with no wall."""
-    (r, c), (gr, gc) = divmod(cell, maze.width), maze.goal
-    return abs(r - gr) + abs(c - gc)
-
-
-def untried_ceilings(maze, cell: int) -> list[float]:
-    """Per action, the distance ceiling's value of an untried move from ``cell`` when no wall is known: entering G
-    after 1 + min(|cell - G|_1, |neighbour - G|_1) steps (the move's cell itself if it leaves the grid)."""
-    r, c = divmod(cell, maze.width)
-    values = []
-    for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0)):
-        inside = 0 <= r + dr < maze.height and 0 <= c + dc < maze.width
-        near = manhattan_to_goal(maze, cell)
-        if inside:
-            near = min(near, manhattan_to_goal(maze, (r + dr) * maze.width + c + dc))
-        values.append(-float(near))
-    return values
-
-
-def route_batch(maze, cells: torch.Tensor, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor]:
-    """A batch of 64 non-terminal samples at ``cells`` taking ``actions``, three in four for G (the rest keep the
-    random goal of :func:`random_batch`); the batch and the mask of G's samples."""
-    batch = random_batch(maze.n_cells)
-    batch.set(("next", "terminated"), torch.zeros(64, 1, dtype=torch.bool))
-    batch.set("observation", cells)
-    batch.set("action", actions)
-    for_g = torch.arange(64) % 4 != 3
-    batch.set("desired_goal", torch.where(for_g, maze.goal_cell, batch["desired_goal"]))
-    batch.set(("next", "desired_goal"), batch["desired_goal"])
-    return batch, for_g
-
-
-def bounded_loss(q, y, floors, ceilings, taken) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``agent.bound_all_actions``'s loss by hand: the TD loss of the taken action against its target ``y`` held
-    into its bounds, and the squared distance of every other action to its prediction held into its bounds. Returns
-    the TD loss, the other actions' term and their mask."""
-    rows = torch.arange(q.shape[0])
-    y = torch.minimum(torch.maximum(y, floors[rows, taken]), ceilings[rows, taken])
-    td = ((q[rows, taken] - y) ** 2).mean()
-    others = torch.ones_like(q, dtype=torch.bool)
-    others[rows, taken] = False
-    outside = ((q - torch.minimum(torch.maximum(q, floors), ceilings)) ** 2 * others).sum(-1).mean()
-    return td, outside, others
-
-
-def update_on(agent, batch: TensorDict) -> tuple[list[TensorDict], object]:
-    """One agent update on ``batch`` as its sample; returns what its loss saw and the loss's own forward."""
-    seen, forward = capture_loss_input(agent)
-    agent.replay_buffer.sample = lambda: batch.clone()
-    agent.update()
-    return seen, forward
-
-
-def capture_loss_input(agent) -> tuple[list[TensorDict], object]:
-    """Record each tensordict the agent's update hands its loss; returns the list and the loss's own forward."""
-    seen, forward = [], agent.loss.forward
-    agent.loss.forward = lambda td: seen.append(td.clone()) or forward(td)
-    return seen, forward
+    batch = hand_batch(obs=[0] * 4, action=[0] * 4, goal=[10] * 4, next_obs=[1] * 4, goal_steps=[[0], [1], [2], [5]])
+    torch.testing.assert_close(bound(agent, HindsightBound).lower(batch, None), torch.tensor([floors]).T)
 
 
 def test_hindsight_bound_lifts_only_the_targets_below_it():
-    """With the bound, the loss's target is max(n-step target, floor): here the floor is -2 (k = 3) on half the
-    batch, above the network's bootstrapped targets (its value bias pushed to -10), and -inf on the other half."""
-    agent = make_agent("agent.step_cost=1", "agent.gamma=1", "agent.hindsight_bound=true", "agent.double_dqn=false")
-    with torch.no_grad():
-        agent.loss.target_value_network.network.value.bias.fill_(-10.0)
-    batch = random_batch(agent.maze.n_cells)
-    batch.set(("next", "terminated"), torch.zeros(64, 1, dtype=torch.bool))
-    goal_steps = torch.tensor([[3], [0]]).repeat(32, 1)
-    batch.set("goal_steps", goal_steps)
-    seen, forward = update_on(agent, batch)
-    torch.testing.assert_close(seen[0]["target_floor"], agent.hindsight_floor(goal_steps))
-    with torch.no_grad():
-        nxt = batch["next"]
-        bootstrap = agent.loss.target_value_network(nxt["observation"], nxt["desired_goal"]).max(-1).values
-        y = nxt["reward"].squeeze(-1) - 1 + bootstrap  # reward - step cost, gamma 1, one step
-        assert bool((y < -2).all())  # every bootstrapped target lies below the floor
-        y = torch.where(goal_steps.squeeze(-1) > 0, torch.tensor(-2.0), y)
-        pred = agent.q_network(batch["observation"], batch["desired_goal"])[torch.arange(64), batch["action"]]
-    torch.testing.assert_close(forward(seen[0])["loss"], ((pred - y) ** 2).mean())
+    """Shortest-path form, V(s) = -s / 5: the one-step target is -1 - s' / 5. Where the stored episode reached the
+    goal k = 3 steps on, the bound is -2 and the target max(-1 - s' / 5, -2); elsewhere the target is unbounded.
+
+    ======  ==========  ===========  ======
+    s'      goal_steps  -1 - s'/5    target
+    ======  ==========  ===========  ======
+    0       3           -1           -1
+    3       3           -1.6         -1.6
+    5       3           -2           -2
+    10      3           -3           -2
+    40      3           -9           -2
+    40      0           -9           -9
+    0       0           -1           -1
+    10      0           -3           -3
+    ======  ==========  ===========  ======
+    """
+    agent = make_agent(*SHORTEST_PATH, "agent.hindsight_bound=true")
+    use_table(agent, -torch.arange(agent.maze.n_cells, dtype=torch.float32) / 5)
+    batch = hand_batch(
+        obs=[20, 21, 22, 23, 24, 25, 26, 27],
+        action=[0, 1, 2, 3, 0, 1, 2, 3],
+        goal=[10] * 8,
+        next_obs=[0, 3, 5, 10, 40, 40, 0, 10],
+        goal_steps=[[3]] * 5 + [[0]] * 3,
+    )
+    expected = torch.tensor([-1.0, -1.6, -2.0, -2.0, -2.0, -9.0, -1.0, -3.0])
+    torch.testing.assert_close(taken(agent, batch), expected)
+    torch.testing.assert_close(agent.loss(batch)["loss"], td_loss(agent, batch, expected))
+
+
+def test_without_the_option_the_goal_steps_bound_nothing():
+    """The same kind of sample without ``agent.hindsight_bound``: a goal reached 3 steps on (bound -2) leaves the
+    one-step target -1 + V(s') = -11 as it is."""
+    agent = make_agent(*SHORTEST_PATH)
+    assert agent.td_target.bounds == ()
+    use_table(agent, torch.full((agent.maze.n_cells,), -10.0))
+    batch = hand_batch(obs=[20, 21], action=[0, 1], goal=[10, 10], next_obs=[3, 4], goal_steps=[[3], [3]])
+    torch.testing.assert_close(taken(agent, batch), torch.tensor([-11.0, -11.0]))
 
 
 def test_hindsight_bound_refuses_a_buffer_without_goal_steps():
-    cfg = compose_cfg("+experiment=easy_small_dqn_her", "agent.hindsight_bound=true", *NO_COUNT_MODEL)
-    buffer = HindsightReplayBuffer(1000, 1, cfg.agent.batch_size)
+    _, settings = agent_settings("agent.hindsight_bound=true")
+    buffer = HindsightReplayBuffer(1000, 1, settings.batch_size)
     with pytest.raises(ValueError, match="goal_steps"):
-        DQNAgent(cfg.agent, load_maze("easy_small"), buffer)
-
-
-# --- the distance ceiling (agent.distance_ceiling) -------------------------------------------------------------------
-def test_distance_ceiling_caps_only_the_targets_for_g_above_it():
-    """With an empty count model no wall is known, so the fewest steps from (s, a) to entering G that cannot be
-    ruled out are 1 + min(|s' - G|_1, |s - G|_1), s' the grid neighbour a points to (the move may yet bump): the
-    target for G is min(n-step target, -(steps - 1)); a sample for another goal keeps its target. The network's
-    value bias is pushed to +10 so that every bootstrapped target lies above the ceiling."""
-    maze = load_maze("easy_small")
-    counts = CountModel(maze.n_cells)
-    agent = make_agent(
-        "agent.step_cost=1", "agent.gamma=1", "agent.distance_ceiling=true", "agent.double_dqn=false", counts=counts
-    )
-    with torch.no_grad():
-        agent.loss.target_value_network.network.value.bias.fill_(10.0)
-    batch = random_batch(maze.n_cells)
-    batch.set(("next", "terminated"), torch.zeros(64, 1, dtype=torch.bool))
-    for_g = torch.arange(64) % 2 == 0
-    batch.set("desired_goal", torch.where(for_g, maze.goal_cell, batch["desired_goal"]))
-    batch.set(("next", "desired_goal"), batch["desired_goal"])
-    seen, forward = update_on(agent, batch)
-
-    manhattan = partial(manhattan_to_goal, maze)
-
-    expected = []
-    for s, a, g in zip(batch["observation"].tolist(), batch["action"].tolist(), for_g.tolist()):
-        r, c = divmod(s, maze.width)
-        dr, dc = ((0, 1), (1, 0), (0, -1), (-1, 0))[a]
-        inside = 0 <= r + dr < maze.height and 0 <= c + dc < maze.width
-        nearer = min(manhattan(s), manhattan((r + dr) * maze.width + c + dc)) if inside else manhattan(s)
-        expected.append(-float(nearer) if g else float("inf"))  # 1 + nearer steps: -(1 + nearer - 1)
-    torch.testing.assert_close(seen[0]["target_ceiling"], torch.tensor(expected).unsqueeze(-1))
-    with torch.no_grad():
-        nxt = batch["next"]
-        bootstrap = agent.loss.target_value_network(nxt["observation"], nxt["desired_goal"]).max(-1).values
-        y = nxt["reward"].squeeze(-1) - 1 + bootstrap  # reward - step cost, gamma 1, one step (no value clip)
-        assert bool((y[for_g] > torch.tensor(expected)[for_g]).all())  # every target for G lies above its ceiling
-        y = torch.minimum(y, torch.tensor(expected))
-        pred = agent.q_network(batch["observation"], batch["desired_goal"])[torch.arange(64), batch["action"]]
-    torch.testing.assert_close(forward(seen[0])["loss"], ((pred - y) ** 2).mean())
-
-
-def test_distance_ceiling_refuses_an_agent_without_the_count_model():
-    with pytest.raises(ValueError, match="count model"):
-        make_agent("agent.distance_ceiling=true")
+        DQNAgent(settings, load_maze("easy_small"), buffer)
 
 
 # --- n_step_max: the largest of the window's k-step targets --------------------------------------------------------
 def test_n_step_max_refuses_a_buffer_without_window_states():
-    cfg = compose_cfg(
-        "+experiment=easy_small_dqn_her", "agent.hindsight_bound=false", "agent.n_step_max=true", *NO_COUNT_MODEL
-    )
-    buffer = HindsightReplayBuffer(1000, 1, cfg.agent.batch_size)
+    _, settings = agent_settings("agent.n_step_max=true")
+    buffer = HindsightReplayBuffer(1000, 1, settings.batch_size)
     with pytest.raises(ValueError, match="window_states"):
-        DQNAgent(cfg.agent, load_maze("easy_small"), buffer)
-
-
-def capture_targets(monkeypatch) -> list[torch.Tensor]:
-    """Record the target each loss computation compares its prediction with."""
-    import ss_drl.agents.dqn as dqn
-
-    targets, distance = [], dqn.distance_loss
-    monkeypatch.setattr(
-        dqn, "distance_loss", lambda pred, target, kind: targets.append(target) or distance(pred, target, kind)
-    )
-    return targets
-
-
-#: Target-network values V(s) per cell for the hand computations (every action the same, so max = V).
-V = {1: -10.0, 2: -4.0, 3: -9.0, 4: -5.0, 5: 0.0, 6: -1.0, 7: -20.0}
+        DQNAgent(settings, load_maze("easy_small"), buffer)
 
 
 def n_step_max_batch() -> TensorDict:
     """Four samples of 3-step windows (shortest-path form, gamma 1: the learner's reward over k steps is -k, +1 on
-    entering the goal), written out:
+    entering the goal), written out with the target network's table :data:`V`:
 
     a. m = 3, no goal: window 1, 2, 3. Targets: k=1 -1 + V(1) = -11, k=2 -2 + V(2) = -6, k=3 -3 + V(3) = -12 -> -6.
     b. m = 3, the goal entered at step 3 (terminal): k=3 gives -2, above k=1 (-11) and k=2 (-6) -> -2.
@@ -588,36 +554,47 @@ def n_step_max_batch() -> TensorDict:
     )
 
 
+def test_k_step_max_bound_by_hand():
+    """The bound alone is the largest k-step target for k < m (above): a -6 (k=2), b -6 (k=2; the 3-step target
+    that enters the goal is the base target, not the bound), c none (m = 1), d -2 (k=1)."""
+    agent = make_agent(*SHORTEST_PATH, "agent.n_step=3", "agent.n_step_max=true")
+    batch = n_step_max_batch()
+    values = cell_table(agent.maze.n_cells, V)[batch["window_observation"][:, :-1]]  # V after k = 1, 2 steps
+    lower = bound(agent, KStepMax).lower(batch, values)
+    torch.testing.assert_close(lower, torch.tensor([[-6.0], [-6.0], [-INF], [-2.0]]))
+
+
 @pytest.mark.parametrize("n_step_max", [True, False])
-def test_n_step_max_target_by_hand(monkeypatch, n_step_max):
+def test_n_step_max_target_by_hand(n_step_max):
     """With the option the target is the largest k-step target of each window (-6, -2, -6, -2 above); without it,
     the m-step target alone (-12, -2, -6, -22)."""
-    agent = make_agent(
-        "agent.step_cost=1",
-        "agent.gamma=1",
-        "agent.n_step=3",
-        f"agent.n_step_max={n_step_max}",
-        "agent.double_dqn=false",
-    )
-    table = torch.zeros(agent.maze.n_cells)
-    for cell, value in V.items():
-        table[cell] = value
-    agent.loss.target_value_network = lambda obs, goal: table[obs].unsqueeze(-1).expand(*obs.shape, 4)
-    agent.replay_buffer.sample = n_step_max_batch
-    targets = capture_targets(monkeypatch)
-    agent.update()
-    expected = [-6.0, -2.0, -6.0, -2.0] if n_step_max else [-12.0, -2.0, -6.0, -22.0]
-    assert targets[0].tolist() == expected
+    agent = make_agent(*SHORTEST_PATH, "agent.n_step=3", f"agent.n_step_max={n_step_max}")
+    use_table(agent, cell_table(agent.maze.n_cells, V))
+    batch = n_step_max_batch()
+    expected = torch.tensor([-6.0, -2.0, -6.0, -2.0] if n_step_max else [-12.0, -2.0, -6.0, -22.0])
+    torch.testing.assert_close(taken(agent, batch), expected)
+    torch.testing.assert_close(agent.loss(batch)["loss"], td_loss(agent, batch, expected))
 
 
-def test_without_the_option_no_floor_reaches_the_loss():
-    agent = make_agent()
-    batch = random_batch(agent.maze.n_cells)
-    batch.set("goal_steps", torch.full((64, 1), 3))
-    seen, _ = capture_loss_input(agent)
-    agent.replay_buffer.sample = lambda: batch.clone()
-    agent.update()
-    assert "target_floor" not in seen[0].keys()
+# --- the count model's bounds: hand-drawn geometry -------------------------------------------------------------------
+def manhattan_to_goal(maze, cell: int) -> int:
+    """|cell - G|_1 on ``maze``'s grid: the steps to G in a grid with no wall."""
+    (r, c), (gr, gc) = divmod(cell, maze.width), maze.goal
+    return abs(r - gr) + abs(c - gc)
+
+
+def untried_ceilings(maze, cell: int) -> list[float]:
+    """Per action, the distance ceiling's value of an untried move from ``cell`` when no wall is known: entering G
+    after 1 + min(|cell - G|_1, |neighbour - G|_1) steps (the move's cell itself if it leaves the grid)."""
+    r, c = divmod(cell, maze.width)
+    values = []
+    for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0)):
+        inside = 0 <= r + dr < maze.height and 0 <= c + dc < maze.width
+        near = manhattan_to_goal(maze, cell)
+        if inside:
+            near = min(near, manhattan_to_goal(maze, (r + dr) * maze.width + c + dc))
+        values.append(-float(near))
+    return values
 
 
 def route_counts(maze) -> tuple[CountModel, list[int], list[int]]:
@@ -635,188 +612,230 @@ def route_counts(maze) -> tuple[CountModel, list[int], list[int]]:
     return counts, route, moves
 
 
+def route_batch(maze, cells: torch.Tensor, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor]:
+    """A batch of 64 live samples with reward 0 at ``cells`` taking ``actions``, three in four for G (the rest keep
+    the random goal of :func:`random_batch`); the batch and the mask of G's samples."""
+    batch = random_batch(maze.n_cells)
+    batch.set(("next", "terminated"), torch.zeros(64, 1, dtype=torch.bool))
+    batch.set(("next", "done"), torch.zeros(64, 1, dtype=torch.bool))
+    batch.set(("next", "reward"), torch.zeros(64, 1))
+    batch.set("observation", cells)
+    batch.set("action", actions)
+    for_g = torch.arange(64) % 4 != 3
+    batch.set("desired_goal", torch.where(for_g, maze.goal_cell, batch["desired_goal"]))
+    batch.set(("next", "desired_goal"), batch["desired_goal"])
+    return batch, for_g
+
+
+def one_step_targets(batch: TensorDict, v: torch.Tensor) -> torch.Tensor:
+    """(B,) the shortest-path form's one-step target of a live sample with reward 0 and the table ``v``: -1 + V(s')."""
+    return -1.0 + v[batch["next", "observation"]]
+
+
+# --- the distance ceiling (agent.distance_ceiling) -------------------------------------------------------------------
+def test_distance_ceiling_caps_only_the_targets_for_g_above_it():
+    """With an empty count model no wall is known, so the fewest steps from (s, a) to entering G that cannot be
+    ruled out are 1 + min(|s' - G|_1, |s - G|_1), s' the grid neighbour a points to (the move may yet bump): the
+    ceiling is -min(...), for G only. V is +10 at even cells and -100 at odd ones, so the one-step targets are 9
+    (above every ceiling, capped for G) or -101 (below every ceiling, kept); a sample for another goal keeps its
+    target."""
+    maze = load_maze("easy_small")
+    agent = make_agent(*SHORTEST_PATH, "agent.distance_ceiling=true", counts=CountModel(maze.n_cells))
+    v = torch.where(torch.arange(maze.n_cells) % 2 == 0, 10.0, -100.0)
+    use_table(agent, v)
+    batch = random_batch(maze.n_cells)
+    batch.set(("next", "terminated"), torch.zeros(64, 1, dtype=torch.bool))
+    batch.set(("next", "reward"), torch.zeros(64, 1))
+    for_g = torch.arange(64) % 2 == 0
+    batch.set("desired_goal", torch.where(for_g, maze.goal_cell, batch["desired_goal"]))
+    batch.set(("next", "desired_goal"), batch["desired_goal"])
+
+    manhattan = partial(manhattan_to_goal, maze)
+    ceilings = []
+    for s, a, g in zip(batch["observation"].tolist(), batch["action"].tolist(), for_g.tolist()):
+        r, c = divmod(s, maze.width)
+        dr, dc = ((0, 1), (1, 0), (0, -1), (-1, 0))[a]
+        inside = 0 <= r + dr < maze.height and 0 <= c + dc < maze.width
+        nearer = min(manhattan(s), manhattan((r + dr) * maze.width + c + dc)) if inside else manhattan(s)
+        ceilings.append(-float(nearer) if g else INF)  # 1 + nearer steps: -(1 + nearer - 1)
+    ceilings = torch.tensor(ceilings)
+    torch.testing.assert_close(bound(agent, DistanceCeiling).upper(batch), ceilings.unsqueeze(-1))
+    y = one_step_targets(batch, v)
+    assert bool((y[for_g] > ceilings[for_g]).any()) and bool((y[for_g] < ceilings[for_g]).any())
+    expected = torch.minimum(y, ceilings)
+    torch.testing.assert_close(taken(agent, batch), expected)
+    torch.testing.assert_close(agent.loss(batch)["loss"], td_loss(agent, batch, expected))
+
+
+def test_where_a_lower_and_an_upper_bound_cross_the_upper_wins():
+    """The hindsight bound of a goal entered on this step (goal_steps 1: 0) and the empty model's ceiling for G
+    from S = (10, 1) moving up to (9, 1), 8 steps from G = (1, 1): -8. Crossed (as no real sample would), the target
+    is the ceiling, -8; for another goal the hindsight bound alone, 0; below both, the one-step target -1 + V = -101
+    is lifted."""
+    maze = load_maze("easy_small")
+    assert maze.pos(maze.start_cell) == (10, 1) and maze.goal == (1, 1)
+    agent = make_agent(
+        *SHORTEST_PATH, "agent.hindsight_bound=true", "agent.distance_ceiling=true", counts=CountModel(maze.n_cells)
+    )
+    use_table(agent, torch.full((maze.n_cells,), -100.0))
+    s = maze.start_cell
+    batch = hand_batch(
+        obs=[s, s], action=[3, 3], goal=[maze.goal_cell, 50], next_obs=[s - 9, s - 9], goal_steps=[[1], [1]]
+    )
+    torch.testing.assert_close(taken(agent, batch), torch.tensor([-8.0, 0.0]))
+
+
 # --- the distance floor (agent.distance_floor) ----------------------------------------------------------------------
 def test_distance_floor_lifts_the_targets_for_g_and_joins_the_hindsight_bound():
     """The count model has seen one route into G on easy_small; for a sample whose goal is G and whose (s, a) lies
-    on it, the floor is -(steps - 1) with steps = 1 + the route's remaining length, and the target is the largest of
-    the n-step target (pushed far down by a value bias of -100), the hindsight bound and the floor. Samples for
-    other goals, or off the route, keep the hindsight bound alone."""
+    on it, the floor is -(steps - 1) with steps = the route's remaining length from (s, a), -inf elsewhere. The
+    hindsight bound is -2 (k = 3) on every eighth sample. The target is the largest of the one-step target (-101:
+    V = -100), the hindsight bound and the floor; samples for other goals, or off the route, keep the hindsight
+    bound alone."""
     maze = load_maze("easy_small")
     counts, route, moves = route_counts(maze)
-    agent = make_agent(
-        "agent.step_cost=1",
-        "agent.gamma=1",
-        "agent.hindsight_bound=true",
-        "agent.distance_floor=true",
-        "agent.double_dqn=false",
-        counts=counts,
-    )
-    with torch.no_grad():
-        agent.loss.target_value_network.network.value.bias.fill_(-100.0)
-    batch = random_batch(maze.n_cells)
-    batch.set(("next", "terminated"), torch.zeros(64, 1, dtype=torch.bool))
-    on_route = torch.arange(64) % 2 == 0  # the even samples: (route[i], moves[i]) for the real goal G
+    agent = make_agent(*SHORTEST_PATH, "agent.hindsight_bound=true", "agent.distance_floor=true", counts=counts)
+    v = torch.full((maze.n_cells,), -100.0)
+    use_table(agent, v)
     i = torch.arange(64) % len(moves)
-    batch.set("observation", torch.where(on_route, torch.tensor(route[:-1])[i], batch["observation"]))
-    batch.set("action", torch.where(on_route, torch.tensor(moves)[i], batch["action"]))
+    on_route = torch.arange(64) % 2 == 0  # the even samples: (route[i], moves[i])
+    random = random_batch(maze.n_cells)
+    cells = torch.where(on_route, torch.tensor(route[:-1])[i], random["observation"])
+    actions = torch.where(on_route, torch.tensor(moves)[i], random["action"])
+    batch, _ = route_batch(maze, cells, actions)
     for_g = on_route | (torch.arange(64) % 4 == 1)  # and a quarter of the batch for G off the route
-    batch.set("desired_goal", torch.where(for_g, maze.goal_cell, batch["desired_goal"]))
+    batch.set("desired_goal", torch.where(for_g, maze.goal_cell, random["desired_goal"]))
     batch.set(("next", "desired_goal"), batch["desired_goal"])
-    goal_steps = torch.where(torch.arange(64) % 8 == 0, 3, 0).unsqueeze(-1)  # the hindsight bound, k = 3
+    goal_steps = torch.where(torch.arange(64) % 8 == 0, 3, 0).unsqueeze(-1)
     batch.set("goal_steps", goal_steps)
-    seen, forward = update_on(agent, batch)
+
     remaining = {(s, a): len(moves) - j for j, (s, a) in enumerate(zip(route, moves))}  # steps to entering G
-    expected = []
-    for j, (s, a) in enumerate(zip(batch["observation"].tolist(), batch["action"].tolist())):
-        bound = -2.0 if goal_steps[j] > 0 else -float("inf")
-        if for_g[j] and (s, a) in remaining:  # every even sample, and any random one that lands on the route
-            bound = max(bound, -(remaining[s, a] - 1.0))
-        expected.append(bound)
-    expected = torch.tensor(expected)
-    torch.testing.assert_close(seen[0]["target_floor"], expected.unsqueeze(-1))
-    assert bool(torch.isfinite(expected[on_route]).all()) and not bool(
-        torch.isfinite(expected[~for_g & (goal_steps.squeeze(-1) == 0)]).any()
-    )
-    with torch.no_grad():
-        nxt = batch["next"]
-        bootstrap = agent.loss.target_value_network(nxt["observation"], nxt["desired_goal"]).max(-1).values
-        y = nxt["reward"].squeeze(-1) - 1 + bootstrap
-        assert bool((y < expected[torch.isfinite(expected)].min()).all())  # every n-step target lies below the floors
-        y = torch.maximum(y, expected)
-        pred = agent.q_network(batch["observation"], batch["desired_goal"])[torch.arange(64), batch["action"]]
-    torch.testing.assert_close(forward(seen[0])["loss"], ((pred - y) ** 2).mean())
-
-
-def test_distance_floor_refuses_an_agent_without_the_count_model():
-    with pytest.raises(ValueError, match="count model"):
-        make_agent("agent.distance_floor=true")
+    floors = []
+    for j, (s, a) in enumerate(zip(cells.tolist(), actions.tolist())):
+        floors.append(-(remaining[s, a] - 1.0) if for_g[j] and (s, a) in remaining else -INF)
+    floors = torch.tensor(floors)
+    hindsight = torch.where(goal_steps.squeeze(-1) > 0, -2.0, -INF)
+    torch.testing.assert_close(bound(agent, DistanceFloor).lower(batch, None), floors.unsqueeze(-1))
+    torch.testing.assert_close(bound(agent, HindsightBound).lower(batch, None), hindsight.unsqueeze(-1))
+    assert bool(torch.isfinite(floors[on_route]).all()) and not bool(torch.isfinite(floors[~for_g]).any())
+    assert bool(((floors > -2) & (goal_steps.squeeze(-1) > 0)).any())  # the floor above the hindsight bound ...
+    assert bool(((floors < -2) & (goal_steps.squeeze(-1) > 0)).any())  # ... and below it
+    y = one_step_targets(batch, v)
+    expected = torch.maximum(torch.maximum(y, hindsight), floors)
+    torch.testing.assert_close(taken(agent, batch), expected)
+    torch.testing.assert_close(agent.loss(batch)["loss"], td_loss(agent, batch, expected))
 
 
 # --- the bounds on every action (agent.bound_all_actions) -----------------------------------------------------------
+@pytest.mark.parametrize("all_actions", [True, False], ids=["all_actions", "taken_action_only"])
 @pytest.mark.parametrize("bias", [10.0, -100.0], ids=["above_the_ceilings", "below_the_floors"])
-def test_bound_all_actions_holds_every_action_of_a_state_for_g_by_hand(bias):
+def test_bound_all_actions_holds_every_action_of_a_state_for_g_by_hand(bias, all_actions):
     """The count model has seen one route into G on easy_small and no wall. For a sample for G at route cell s_j:
     the floor of the route's move is -(steps left - 1) and of the three untried moves -inf (no observed route); the
     ceiling of the route's move is -|s_{j+1} - G|_1 and of an untried move -min(|s - G|_1, |s' - G|_1) (s' the
-    neighbour it points to, s itself if it leaves the grid; no wall is known). The loss is the TD loss plus, per
-    sample, the squared distance of each action but the taken one to its prediction clipped into its bounds: with
-    the online network's value bias at +10 every prediction lies above its ceiling, at -100 below every finite
-    floor. Samples for other goals add nothing."""
+    neighbour it points to, s itself if it leaves the grid; no wall is known). The taken action's target is the
+    one-step target -1 + V(s') (V(s) = -s / 5) held into its bounds. With ``bound_all_actions`` every other action is
+    held to its own prediction clipped into its bounds: with the online network's value bias at +10 every
+    prediction lies above its ceiling, at -100 below every finite floor; samples for other goals hold nothing.
+    Without it, nothing holds the other actions and the loss is the taken action's alone."""
     maze = load_maze("easy_small")
     counts, route, moves = route_counts(maze)
     agent = make_agent(
-        "agent.step_cost=1",
-        "agent.gamma=1",
+        *SHORTEST_PATH,
         "agent.distance_floor=true",
         "agent.distance_ceiling=true",
-        "agent.bound_all_actions=true",
-        "agent.double_dqn=false",
+        f"agent.bound_all_actions={all_actions}",
         counts=counts,
     )
     with torch.no_grad():
         agent.q_network.value.bias.fill_(bias)
+    v = -torch.arange(maze.n_cells, dtype=torch.float32) / 5
+    use_table(agent, v)
     i = torch.arange(64) % len(moves)
     actions = torch.randint(4, (64,), generator=torch.Generator().manual_seed(1))
     batch, for_g = route_batch(maze, torch.tensor(route[:-1])[i], actions)
-    seen, forward = update_on(agent, batch)
 
     manhattan = partial(manhattan_to_goal, maze)
-
-    inf = float("inf")
     floors, ceilings = [], []
     for j, g in zip(i.tolist(), for_g.tolist()):
-        floor, ceiling = [-inf] * 4, untried_ceilings(maze, route[j])
+        floor, ceiling = [-INF] * 4, untried_ceilings(maze, route[j])
         floor[moves[j]] = -(len(moves) - j - 1.0)
         ceiling[moves[j]] = -float(manhattan(route[j + 1]))
-        floors.append(floor if g else [-inf] * 4)
-        ceilings.append(ceiling if g else [inf] * 4)
+        floors.append(floor if g else [-INF] * 4)
+        ceilings.append(ceiling if g else [INF] * 4)
     floors, ceilings = torch.tensor(floors), torch.tensor(ceilings)
-    torch.testing.assert_close(seen[0]["action_floor"], floors)
-    torch.testing.assert_close(seen[0]["action_ceiling"], ceilings)
-    with torch.no_grad():
-        nxt = batch["next"]
-        bootstrap = agent.loss.target_value_network(nxt["observation"], nxt["desired_goal"]).max(-1).values
-        y = nxt["reward"].squeeze(-1) - 1 + bootstrap
-        q = agent.q_network(batch["observation"], batch["desired_goal"])
-        td, outside, others = bounded_loss(q, y, floors, ceilings, batch["action"])
-        if bias > 0:  # every prediction for G above its ceiling: each of the other actions adds its distance
-            assert bool((q[for_g] > ceilings[for_g]).all())
-        else:  # every prediction below its finite floors: only the route's moves have one
-            finite = torch.isfinite(floors)
-            assert bool((q[finite] < floors[finite]).all())
-            assert int(torch.isfinite(floors[others]).sum()) > 0
-        assert float(outside) > 1.0
-    torch.testing.assert_close(forward(seen[0])["loss"], td + outside)
-
-
-def test_bound_all_actions_off_leaves_the_loss_on_the_taken_action():
-    maze = load_maze("easy_small")
-    counts, _, _ = route_counts(maze)
-    agent = make_agent("agent.distance_floor=true", "agent.distance_ceiling=true", counts=counts)
-    batch = random_batch(maze.n_cells)
-    batch.set("desired_goal", torch.full((64,), maze.goal_cell))
-    seen, _ = capture_loss_input(agent)
-    agent.replay_buffer.sample = lambda: batch.clone()
-    agent.update()
-    assert "action_floor" not in seen[0].keys() and "action_ceiling" not in seen[0].keys()
-
-
-def test_bound_all_actions_refuses_an_agent_without_a_distance_bound():
-    maze = load_maze("easy_small")
-    with pytest.raises(ValueError, match="bound_all_actions needs"):
-        make_agent("agent.bound_all_actions=true", counts=CountModel(maze.n_cells))
+    rows = torch.arange(64)
+    floor, ceiling = bound(agent, DistanceFloor), bound(agent, DistanceCeiling)
+    torch.testing.assert_close(floor.lower(batch, None), floors[rows, actions].unsqueeze(-1))
+    torch.testing.assert_close(ceiling.upper(batch), ceilings[rows, actions].unsqueeze(-1))
+    y = torch.minimum(torch.maximum(one_step_targets(batch, v), floors[rows, actions]), ceilings[rows, actions])
+    torch.testing.assert_close(taken(agent, batch), y)
+    q = predictions(agent, batch)
+    others = agent.td_target.others(batch, q, agent.loss.bootstrap)
+    if not all_actions:
+        assert floor.lower_all(batch) is None and ceiling.upper_all(batch) is None and others is None
+        torch.testing.assert_close(agent.loss(batch)["loss"], td_loss(agent, batch, y))
+        return
+    torch.testing.assert_close(floor.lower_all(batch), floors)
+    torch.testing.assert_close(ceiling.upper_all(batch), ceilings)
+    held = torch.minimum(torch.maximum(q, floors), ceilings)
+    torch.testing.assert_close(others, held)
+    if bias > 0:  # every prediction for G above its ceiling: held at the ceiling
+        assert bool((q[for_g] > ceilings[for_g]).all())
+        torch.testing.assert_close(others[for_g], ceilings[for_g])
+    else:  # every prediction below its finite floors: only the route's moves have one
+        finite = torch.isfinite(floors)
+        assert bool((q[finite] < floors[finite]).all())
+        torch.testing.assert_close(others[finite], floors[finite])
+    torch.testing.assert_close(others[~for_g], q[~for_g])  # other goals: held to their own prediction
+    outside = others_loss(q, held, actions)
+    assert float(outside) > 1.0
+    torch.testing.assert_close(agent.loss(batch)["loss"], td_loss(agent, batch, y) + outside)
 
 
 # --- one-step targets for the other actions through the count model (agent.model_targets) ---------------------------
 def test_model_targets_give_every_seen_action_its_one_step_target_by_hand():
     """The count model has seen one route into G on easy_small and, at one route cell, a bump. The target network
-    is a table V (the same value for all four actions, so its max is V). For a sample at route cell s_j with goal g,
-    each action but the taken one that the model has seen from s_j gets r - 1 + V(s'), r = 1 and no bootstrap where
-    s' = g (entering g ends): the route's move (s' = s_{j+1}) and the bump (s' = s_j). The untried ones add no loss.
-    Half the samples ask for G, the other half for s_{j+1} itself (a relabeled goal, entered by the route's move)."""
+    is a table V. For a sample at route cell s_j with goal g, each action that the model has seen from s_j is held
+    to r - 1 + V(s'), r = 1 and no bootstrap where s' = g (entering g ends): the route's move (s' = s_{j+1}) and the
+    bump (s' = s_j). An untried one is held to its own prediction (adds no loss). Half the samples ask for G, the
+    other half for s_{j+1} itself (a relabeled goal, entered by the route's move)."""
     maze = load_maze("easy_small")
     counts, route, moves = route_counts(maze)
     table = maze.transition_table()
     j_bump, a_bump = next((j, a) for j, s in enumerate(route[:-1]) for a in range(4) if table[s, a] == s)
     counts.update(torch.tensor([route[j_bump]]), torch.tensor([a_bump]), torch.tensor([route[j_bump]]), torch.zeros(1))
-    agent = make_agent(
-        "agent.step_cost=1", "agent.gamma=1", "agent.model_targets=true", "agent.double_dqn=false", counts=counts
-    )
+    agent = make_agent(*SHORTEST_PATH, "agent.model_targets=true", counts=counts)
     v = -torch.arange(maze.n_cells, dtype=torch.float32) / 7.0  # any distinct values
-    agent.loss.target_value_network = lambda obs, goal: v[obs].unsqueeze(-1).expand(*obs.shape, 4)
-    batch = random_batch(maze.n_cells)
-    batch.set(("next", "terminated"), torch.zeros(64, 1, dtype=torch.bool))
+    use_table(agent, v)
     i = torch.arange(64) % len(moves)
     i[:8] = j_bump  # a few samples at the bump's cell
     cells = torch.tensor(route)
-    batch.set("observation", cells[i])
-    batch.set("action", torch.randint(4, (64,), generator=torch.Generator().manual_seed(2)))
+    actions = torch.randint(4, (64,), generator=torch.Generator().manual_seed(2))
+    batch, _ = route_batch(maze, cells[i], actions)
     for_g = torch.arange(64) % 2 == 0
     batch.set("desired_goal", torch.where(for_g, maze.goal_cell, cells[i + 1]))
     batch.set(("next", "desired_goal"), batch["desired_goal"])
-    seen, forward = update_on(agent, batch)
-    with torch.no_grad():
-        q = agent.q_network(batch["observation"], batch["desired_goal"])
-    expected_next = torch.full((64, 4), -1)
-    held = q.clone()
+    q = predictions(agent, batch)
+    held, seen = q.clone(), torch.zeros(64, 4, dtype=torch.bool)
     for b, (j, g) in enumerate(zip(i.tolist(), batch["desired_goal"].tolist())):
         seen_moves = {moves[j]: route[j + 1]}
         if j == j_bump:
             seen_moves[a_bump] = route[j]
         for a, s2 in seen_moves.items():
-            expected_next[b, a] = s2
+            seen[b, a] = True
             held[b, a] = 0.0 if s2 == g else -1.0 + float(v[s2])
-    assert torch.equal(seen[0]["model_next_observation"], expected_next)
-    rows, taken = torch.arange(64), batch["action"]
-    nxt = batch["next"]
-    y = nxt["reward"].squeeze(-1) - 1 + v[nxt["observation"]]
-    td = ((q[rows, taken] - y) ** 2).mean()
-    others = torch.ones(64, 4, dtype=torch.bool)
-    others[rows, taken] = False
-    outside = ((q - held) ** 2 * others).sum(-1).mean()
-    assert int((others & (expected_next >= 0)).sum()) >= 32 and float(outside) > 0.1  # the term is not empty
-    assert int((others & (expected_next >= 0) & (expected_next == batch["desired_goal"].unsqueeze(-1))).sum()) > 0
-    torch.testing.assert_close(forward(seen[0])["loss"], td + outside)
+    torch.testing.assert_close(agent.td_target.others(batch, q, agent.loss.bootstrap), held)
+    y = one_step_targets(batch, v)
+    torch.testing.assert_close(taken(agent, batch), y)  # the taken action's own target is the TD one
+    rows = torch.arange(64)
+    not_taken = torch.ones(64, 4, dtype=torch.bool)
+    not_taken[rows, actions] = False
+    assert int((not_taken & seen).sum()) >= 32  # the term is not empty ...
+    assert bool((not_taken & seen & (held == 0)).any())  # ... and holds a relabeled goal entered (0)
+    outside = others_loss(q, held, actions)
+    assert float(outside) > 0.1
+    torch.testing.assert_close(agent.loss(batch)["loss"], td_loss(agent, batch, y) + outside)
 
 
 def test_model_targets_refuse_a_stochastic_model():
@@ -825,9 +844,8 @@ def test_model_targets_refuse_a_stochastic_model():
     s = maze.start_cell
     counts.update(torch.tensor([s, s]), torch.tensor([0, 0]), torch.tensor([s, s + 1]), torch.zeros(2))
     agent = make_agent("agent.model_targets=true", counts=counts)
-    agent.replay_buffer.sample = lambda: random_batch(maze.n_cells)
     with pytest.raises(ValueError, match="deterministic"):
-        agent.update()
+        agent.loss(random_batch(maze.n_cells))
 
 
 # --- the ceiling where no route is known (agent.optimistic_floor) ----------------------------------------------------
@@ -838,8 +856,8 @@ def test_optimistic_floor_makes_the_ceiling_the_target_where_no_route_is_known_b
     entering G after 1 + |s' - G|_1 steps, -|s' - G|_1 (s' = s_{j+1} for the route's move; for an untried move the
     nearer of the neighbour and s itself, s alone where the move leaves the grid); the floor is the known route's
     -(steps left - 1) where the whole route has been seen and a is its move, and everywhere else (no observed
-    route) the ceiling itself. So with every prediction and bootstrap pushed far below (value biases at -100) the
-    taken action's target and every other action's held value are the ceiling, or the route's floor on the
+    route) the ceiling itself. So with every prediction and bootstrap pushed far below (value bias -100, V = -100)
+    the taken action's target and every other action's held value are the ceiling, or the route's floor on the
     route. Samples for other goals get neither bound."""
     maze = load_maze("easy_small")
     counts, route, moves = route_counts(maze)
@@ -850,26 +868,23 @@ def test_optimistic_floor_makes_the_ceiling_the_target_where_no_route_is_known_b
             torch.tensor(route[:half]), torch.tensor(moves[:half]), torch.tensor(route[1 : half + 1]), torch.zeros(half)
         )
     agent = make_agent(
-        "agent.step_cost=1",
-        "agent.gamma=1",
+        *SHORTEST_PATH,
         "agent.distance_floor=true",
         "agent.distance_ceiling=true",
         "agent.bound_all_actions=true",
         "agent.optimistic_floor=true",
-        "agent.double_dqn=false",
         counts=counts,
     )
     with torch.no_grad():
         agent.q_network.value.bias.fill_(-100.0)
-        agent.loss.target_value_network.network.value.bias.fill_(-100.0)
+    v = torch.full((maze.n_cells,), -100.0)
+    use_table(agent, v)
     i = torch.arange(64) % half  # cells of the route's first half: seen in either model
     # the route's move, the one the model has seen
     batch, for_g = route_batch(maze, torch.tensor(route[:-1])[i], torch.tensor(moves)[i])
     batch.set(("next", "observation"), torch.tensor(route[1:])[i])
-    seen, forward = update_on(agent, batch)
 
     manhattan = partial(manhattan_to_goal, maze)
-    inf = float("inf")
     floors, ceilings = [], []
     for j, g in zip(i.tolist(), for_g.tolist()):
         ceiling = untried_ceilings(maze, route[j])
@@ -877,27 +892,24 @@ def test_optimistic_floor_makes_the_ceiling_the_target_where_no_route_is_known_b
         floor = list(ceiling)  # no observed route from an untried move, nor from the route's before the whole is seen
         if known == "whole_route":
             floor[moves[j]] = -(len(moves) - j - 1.0)
-        floors.append(floor if g else [-inf] * 4)
-        ceilings.append(ceiling if g else [inf] * 4)
+        floors.append(floor if g else [-INF] * 4)
+        ceilings.append(ceiling if g else [INF] * 4)
     floors, ceilings = torch.tensor(floors), torch.tensor(ceilings)
-    rows, taken = torch.arange(64), batch["action"]
-    torch.testing.assert_close(seen[0]["action_floor"], floors)
-    torch.testing.assert_close(seen[0]["action_ceiling"], ceilings)
-    torch.testing.assert_close(seen[0]["target_floor"], floors[rows, taken].unsqueeze(-1))
+    rows, actions = torch.arange(64), batch["action"]
+    floor, ceiling = bound(agent, DistanceFloor), bound(agent, DistanceCeiling)
+    torch.testing.assert_close(floor.lower_all(batch), floors)
+    torch.testing.assert_close(ceiling.upper_all(batch), ceilings)
+    torch.testing.assert_close(floor.lower(batch, None), floors[rows, actions].unsqueeze(-1))
     if known == "half_route":  # no route into G: floor and ceiling meet on every action for G
         assert torch.equal(floors[for_g], ceilings[for_g])
     else:  # the route's floor lies below its ceiling (the route is longer than |s - G|_1 somewhere)
-        assert bool((floors[rows, taken][for_g] < ceilings[rows, taken][for_g]).any())
-    with torch.no_grad():
-        q = agent.q_network(batch["observation"], batch["desired_goal"])
-        bootstrap = agent.loss.target_value_network(batch["next", "observation"], batch["desired_goal"]).max(-1).values
-        y = batch["next", "reward"].squeeze(-1) - 1 + bootstrap
-        assert bool((y < -50).all())  # every TD target far below its bounds, so the bounds decide
-        td, outside, _ = bounded_loss(q, y, floors, ceilings, taken)
-    torch.testing.assert_close(forward(seen[0])["loss"], td + outside)
-
-
-def test_optimistic_floor_refuses_an_agent_without_both_distance_bounds():
-    maze = load_maze("easy_small")
-    with pytest.raises(ValueError, match="optimistic_floor needs"):
-        make_agent("agent.optimistic_floor=true", "agent.distance_floor=true", counts=CountModel(maze.n_cells))
+        assert bool((floors[rows, actions][for_g] < ceilings[rows, actions][for_g]).any())
+    y = one_step_targets(batch, v)
+    assert bool((y < -50).all())  # every TD target far below its bounds, so the bounds decide
+    expected = torch.where(for_g, floors[rows, actions], y)
+    torch.testing.assert_close(taken(agent, batch), expected)
+    q = predictions(agent, batch)
+    held = torch.where(for_g.unsqueeze(-1), floors, q)  # every prediction for G below its floor: held at the floor
+    torch.testing.assert_close(agent.td_target.others(batch, q, agent.loss.bootstrap), held)
+    outside = others_loss(q, held, actions)
+    torch.testing.assert_close(agent.loss(batch)["loss"], td_loss(agent, batch, expected) + outside)

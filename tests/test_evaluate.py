@@ -8,7 +8,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers import NO_COUNT_MODEL
 from hydra import compose, initialize_config_dir
 
 from ss_drl.envs.maze import load_maze
@@ -19,20 +18,33 @@ from ss_drl.training.trainer import Trainer
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _count_model_bounds(agent) -> dict[str, torch.Tensor]:
+    """The step counts to G that the agent's count-model bounds hold (distance floor and ceiling), by switch."""
+    return {bound.key: bound.steps() for bound in agent.td_target.bounds if hasattr(bound, "steps")}
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "options",
-    [[], ["agent.distance_floor=false", "agent.optimistic_floor=false"], ["agent.n_step_max=true", *NO_COUNT_MODEL]],
-    ids=["default", "distance_ceiling", "LM"],
+    ("experiment", "options", "bounds"),
+    [
+        ("easy_small_ss_her_bounded", [], {"distance_floor", "distance_ceiling"}),
+        (
+            "easy_small_ss_her_bounded",
+            ["agent.distance_floor=false", "agent.optimistic_floor=false"],
+            {"distance_ceiling"},
+        ),
+        ("easy_small_ss_her", [], set()),
+    ],
+    ids=["bounded", "distance_ceiling", "replay_only"],
 )
-def test_evaluate_reproduces_the_final_greedy_evaluation(tmp_path, options):
-    """For the default agent, which reads the count model (agent.distance_ceiling, agent.distance_floor: the
-    checkpoint's counts are loaded), one with the ceiling alone, and LM, which reads neither."""
+def test_evaluate_reproduces_the_final_greedy_evaluation(tmp_path, experiment, options, bounds):
+    """For the model-bounded DQN, which reads the count model (its distance floor and ceiling: the checkpoint's
+    counts are loaded), one with the ceiling alone, and the replay-only DQN, which reads none."""
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose(
             "config",
             overrides=[
-                "+experiment=easy_small_ss_her",
+                f"+experiment={experiment}",
                 "trainer.total_env_steps=600",
                 "agent.learning_starts=100",
                 "agent.batch_size=16",
@@ -42,9 +54,10 @@ def test_evaluate_reproduces_the_final_greedy_evaluation(tmp_path, options):
     trainer = Trainer(cfg, tmp_path)
     summary = trainer.train()
     agent, maze, _ = load_agent(tmp_path)
-    for bound in ("distance_ceiling", "distance_floor"):
-        if getattr(trainer.agent, bound) is not None:
-            torch.testing.assert_close(getattr(agent, bound).steps(), getattr(trainer.agent, bound).steps())
+    trained, loaded = _count_model_bounds(trainer.agent), _count_model_bounds(agent)
+    assert set(trained) == set(loaded) == bounds
+    for key in bounds:
+        torch.testing.assert_close(loaded[key], trained[key])
     rollout = greedy_rollout(agent, maze, 1000)
     assert rollout.length == summary["final_eval_length"]
     assert round(rollout.accuracy, 4) == summary["final_greedy_accuracy"]
@@ -58,6 +71,21 @@ def test_evaluate_reproduces_the_final_greedy_evaluation(tmp_path, options):
     png = tmp_path / "greedy_policy.png"
     assert png.stat().st_size > 1000
     assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_evaluate_refuses_a_checkpoint_from_before_the_learners_were_renamed(tmp_path):
+    """Its config names options and learners this version does not have: one line, exit 2, nothing drawn."""
+    old_config = {"method": "ss_her", "agent": {"name": "dqn", "advantage_learning": False}}
+    torch.save({"config": old_config}, tmp_path / "checkpoint.pt")
+    result = subprocess.run(
+        [sys.executable, "scripts/evaluate.py", str(tmp_path)], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        f"evaluate.py: error: {tmp_path / 'checkpoint.pt'} was written before the learners were renamed "
+        "(docs/migration.md): read it with a checkout of 7ac5009"
+    ]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.pt"]
 
 
 def test_evaluate_without_checkpoint_is_a_clear_error(tmp_path):

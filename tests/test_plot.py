@@ -69,9 +69,10 @@ OLD_EVAL_COLUMNS = tuple(c for c in EVAL_COLUMNS if c != agg.EV_WALL)
 
 def _write_run(
     d: Path, maze, method, seed, first_goal, wall, episodes, evals, completed=True, n_episodes=None, accuracy=None,
-    eval_columns=EVAL_COLUMNS,
+    eval_columns=EVAL_COLUMNS, config=None,
 ):  # fmt: skip
-    """A run directory; the summary's env steps (the budget) are those of the last evaluation (0 without any)."""
+    """A run directory; the summary's env steps (the budget) are those of the last evaluation (0 without any).
+    ``config``: the summary's resolved config (None: none, the stored ``method`` labels the run)."""
     d.mkdir(parents=True)
     summary = dict.fromkeys(SUMMARY_KEYS)
     summary.update(
@@ -86,6 +87,7 @@ def _write_run(
             agg.SK_WALL: wall,
             agg.SK_ACCURACY: accuracy,
             agg.SK_ENV_STEPS: evals[-1][agg.EV_ENV_STEPS] if evals else 0,
+            "config": config,
         }
     )
     (d / SUMMARY_FILE).write_text(json.dumps(summary))
@@ -422,6 +424,83 @@ def test_cli_no_complete_runs(synth, tmp_path, capsys):
     assert err[1].startswith("plot.py: error: no complete runs")
     with pytest.raises(AnalysisError):
         load_runs([bad["missing_episodes"]], warn=lambda _: None)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Run directories written before the learners were renamed: labelled by their resolved config
+# ---------------------------------------------------------------------------------------------------------------------
+
+
+def _old_config(method="ss_her", her_k=4, eta=1.0, **bounds) -> dict:
+    """A resolved config as summary.json held it at 7ac5009: a declared ``method`` label, the count model's switches
+    (all off unless given) and options deleted since (advantage_learning, eval_tau, lr_end)."""
+    switches = ("distance_floor", "distance_ceiling", "bound_all_actions", "model_targets", "optimistic_floor")
+    agent = {"name": "dqn", "gamma": 1.0, "n_step": 5, "hindsight_bound": True, "n_step_max": False}
+    agent |= {"advantage_learning": False, "eval_network": "target", "eval_tau": 0.01, "lr_end": None}
+    agent |= {key: bool(bounds.get(key, False)) for key in switches}
+    return {
+        "experiment": f"easy_{method}",
+        "method": method,
+        "seed": 0,
+        "agent": agent,
+        "her": {"strategy": "future", "k": her_k},
+        "smart_start": {"eta": eta, "c_ss": 0.1},
+    }
+
+
+def _write_old_run(d: Path, method: str, seed: int, config: dict) -> None:
+    _write_run(d, MAZE, method, seed, 1000, 10.0, _episodes([20] * 10, [1] * 10), _evals([(200, 20, 1)]),
+               config=config)  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("bounds", "label"),
+    [
+        ({}, "ss_her"),
+        ({"distance_floor": True}, "ss_her_bounded"),
+        ({"distance_ceiling": True}, "ss_her_bounded"),
+        ({"model_targets": True}, "ss_her_bounded"),
+        ({"distance_floor": True, "distance_ceiling": True, "bound_all_actions": True}, "ss_her_bounded"),
+    ],
+)
+def test_an_old_run_is_labelled_by_its_resolved_config(tmp_path, bounds, label):
+    """summary.json says ``"method": "ss_her"`` (the label at 7ac5009, when every deep method used the count model's
+    bounds); the run is grouped and tabulated as what its config ran: ``ss_her_bounded`` with any of the distance
+    floor, the distance ceiling or the model targets on, ``ss_her`` with all of them off."""
+    _write_old_run(tmp_path / "run", "ss_her", 0, _old_config(**bounds))
+    (run,) = load_runs([tmp_path], warn=pytest.fail)
+    assert run.summary[agg.SK_METHOD] == "ss_her"
+    assert run.method == label
+    assert list(group_runs([run])) == [(MAZE, label)]
+    (row,) = results_table(group_runs([run]), n_resamples=10)
+    assert row.method == label
+
+
+def test_plot_py_groups_old_runs_by_learner(tmp_path, capsys):
+    """Old runs stored under one label, ``ss_her``, two of them with the count model's bounds on and one without,
+    and one stored as ``dqn_her`` whose config ran Smart Start: scripts/plot.py's table and results.md have one row
+    per learner and method, never the stored labels."""
+    root = tmp_path / "old"
+    _write_old_run(root / "a", "ss_her", 0, _old_config(distance_floor=True, distance_ceiling=True))
+    _write_old_run(root / "b", "ss_her", 1, _old_config(model_targets=True))
+    _write_old_run(root / "c", "ss_her", 0, _old_config())
+    _write_old_run(root / "d", "dqn_her", 1, _old_config("dqn_her"))  # a stored label that its config contradicts
+    # A hand-written summary whose config names no learner: its stored label.
+    _write_run(root / "e", MAZE, "dqn", 0, None, 1.0, _episodes([5] * 3, [0] * 3), _evals([(15, 5, 0)]),
+               config={"seed": 0})  # fmt: skip
+    assert main([str(root), "--bootstrap", "10"]) == 0
+    out = capsys.readouterr().out
+    methods = [line.split("|")[2].strip() for line in out.splitlines()[2:] if line.startswith("|")]
+    assert methods == ["dqn", "ss_her", "ss_her_bounded"], out
+    groups = group_runs(load_runs([root]))
+    assert {r.method: r.seeds for r in results_table(groups, n_resamples=10)} == {
+        "dqn": 1,
+        "ss_her": 2,
+        "ss_her_bounded": 2,
+    }
+    assert [r.path.name for r in groups[(MAZE, "ss_her_bounded")]] == ["a", "b"]
+    assert sorted(r.path.name for r in groups[(MAZE, "ss_her")]) == ["c", "d"]
+    assert out in (root / "plots" / "results.md").read_text()
 
 
 def test_learning_figure_draws_td_loss_and_mean_q_averaged_over_seeds(tmp_path):

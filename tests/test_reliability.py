@@ -134,13 +134,99 @@ def test_truncate_csv_keeps_the_rows_bytes(tmp_path):
     assert path.read_bytes() == b"a,b\r\n1,2\r\n3,4\r\n7,8\r\n"
 
 
+def snapshot(directory: Path) -> dict[str, bytes]:
+    return {p.relative_to(directory).as_posix(): p.read_bytes() for p in sorted(directory.rglob("*")) if p.is_file()}
+
+
 def test_resume_without_checkpoint_is_a_clear_error(tmp_path):
+    """Refused before Hydra creates the run directory (it used to be left holding .hydra/ and cli.log)."""
     result = subprocess.run(
         _train_cmd(tmp_path / "none", "trainer.resume=true"), capture_output=True, text=True, cwd=ROOT, timeout=300
     )
-    assert result.returncode != 0
-    assert "no checkpoint" in result.stderr.strip().splitlines()[-1]
-    assert "Traceback" not in result.stderr
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().splitlines() == [
+        f"ss-drl: config error: trainer.resume: no checkpoint to resume at {tmp_path / 'none' / CHECKPOINT_FILE}"
+    ]
+    assert not (tmp_path / "none").exists(), "a refused run left its run directory behind"
+
+
+OLD_CHECKPOINT = (
+    "trainer.resume: {path} was written before the learners were renamed (docs/migration.md): continue it with a "
+    "checkout of 7ac5009, or start a new run"
+)
+
+
+@pytest.mark.slow
+def test_a_checkpoint_from_before_the_learners_were_renamed_is_refused_on_resume(tmp_path):
+    """A run directory written at 7ac5009 or before (its checkpoint has no format marker; its summary.json and CSVs
+    are complete) is refused on trainer.resume=true, auto and <dir>: one line, exit 2, before Hydra writes its
+    .hydra/ files, and the run's files stay byte for byte as they were. The trainer refuses it too."""
+    from ss_drl.training.checkpoint import FORMAT, FORMAT_KEY
+    from ss_drl.training.config import ConfigError
+
+    run = tmp_path / "run"
+    overrides = ["+experiment=easy_small_dqn_her", "trainer.total_env_steps=200", *SMALL]
+    Trainer(compose_cfg(*overrides), run).train()
+    state = torch.load(run / CHECKPOINT_FILE, weights_only=False)
+    assert state[FORMAT_KEY] == FORMAT  # what this version writes
+    del state[FORMAT_KEY]
+    torch.save(state, run / CHECKPOINT_FILE)
+    (run / ".hydra").mkdir()
+    (run / ".hydra" / "config.yaml").write_text("seed: 0\n")  # Hydra's record of the run: a resume rewrites it
+    before = snapshot(run)
+    assert {SUMMARY_FILE, EPISODES_FILE, EVAL_FILE, CHECKPOINT_FILE} <= set(before)
+    expected = "ss-drl: config error: " + OLD_CHECKPOINT.format(path=run / CHECKPOINT_FILE)
+    cwd = tmp_path / "cwd"  # where Hydra would put outputs/<experiment>/... for trainer.resume=<dir>
+    cwd.mkdir()
+    command = [sys.executable, str(ROOT / "scripts" / "train.py"), *overrides, "trainer.total_env_steps=400"]
+    for resume in (["trainer.resume=true", f"hydra.run.dir={run}"], ["trainer.resume=auto", f"hydra.run.dir={run}"],
+                   [f"trainer.resume={run}"]):  # fmt: skip
+        result = subprocess.run([*command, *resume], capture_output=True, text=True, cwd=cwd, timeout=300)
+        assert result.returncode == 2, result.stderr
+        assert result.stderr.strip().splitlines() == [expected], result.stderr
+        assert snapshot(run) == before, f"{resume}: a refused resume changed the run"
+        assert list(cwd.iterdir()) == [], f"{resume}: a refused resume left {list(cwd.iterdir())}"
+    resumed = compose_cfg(*overrides, "trainer.total_env_steps=400", "trainer.resume=true")
+    with pytest.raises(ConfigError) as refused:
+        Trainer(resumed, run)
+    assert str(refused.value) == OLD_CHECKPOINT.format(path=run / CHECKPOINT_FILE)
+    assert snapshot(run) == before
+
+
+def test_check_resume_refuses_what_cannot_be_continued(tmp_path):
+    """The check that runs before anything is written: an old or unknown format, an unreadable checkpoint, another
+    config, no checkpoint; each one line naming trainer.resume. A checkpoint of this format with the same config
+    (budgets aside) passes, and a new run (resume false) reads nothing."""
+    from ss_drl.training.checkpoint import FORMAT, FORMAT_KEY, check_resume, task_config
+    from ss_drl.training.config import ConfigError
+
+    cfg = compose_cfg("+experiment=easy_small_dqn_her", "trainer.resume=true")
+    path = tmp_path / CHECKPOINT_FILE
+
+    def refused(state) -> str:
+        if isinstance(state, bytes):
+            path.write_bytes(state)
+        else:
+            torch.save(state, path)
+        with pytest.raises(ConfigError) as info:
+            check_resume(cfg, tmp_path)
+        message = str(info.value)
+        assert message.startswith("trainer.resume: ") and "\n" not in message, message
+        return message
+
+    config = task_config(cfg)
+    assert refused({"config": config}) == OLD_CHECKPOINT.format(path=path)
+    assert refused({FORMAT_KEY: 1, "config": config}) == OLD_CHECKPOINT.format(path=path)
+    assert "format 3, which this version (format 2) cannot read" in refused({FORMAT_KEY: 3, "config": config})
+    assert f"{path} cannot be read" in refused(b"not a checkpoint")
+    assert "config 'seed' differs" in refused({FORMAT_KEY: FORMAT, "config": {**config, "seed": 1}})
+    other_budget = {**config, "trainer": {**config["trainer"], "total_env_steps": 1}}
+    torch.save({FORMAT_KEY: FORMAT, "config": other_budget}, path)
+    check_resume(cfg, tmp_path)  # budgets may change on resume
+    check_resume(compose_cfg("+experiment=easy_small_dqn_her"), tmp_path / "missing")  # a new run: nothing to read
+    path.unlink()
+    with pytest.raises(ConfigError, match="^trainer.resume: no checkpoint to resume at"):
+        check_resume(cfg, tmp_path)
 
 
 # --- a new run never overwrites another; trainer.resume=auto continues a run if it can, else starts it ---
@@ -179,8 +265,16 @@ def test_the_trainer_refuses_a_directory_holding_a_run_unless_it_resumes(tmp_pat
     refuse_overwrite(auto, tmp_path)  # continuing is what resume is for
     refuse_overwrite(resume, tmp_path)
     assert should_resume(auto, tmp_path) is True  # auto with a checkpoint: continue it
+    # auto where a finished run lost its checkpoint would start anew over its results: refused
+    (tmp_path / CHECKPOINT_FILE).unlink()
+    with pytest.raises(ConfigError, match=f"^hydra.run.dir: {tmp_path} holds a finished run .* no {CHECKPOINT_FILE}"):
+        refuse_overwrite(auto, tmp_path)
+    (tmp_path / SUMMARY_FILE).unlink()
+    refuse_overwrite(auto, tmp_path)  # a run cut before its first checkpoint: auto starts it anew
+    assert should_resume(auto, tmp_path) is False
 
 
+@pytest.mark.slow  # a training run
 def test_nan_loss_stops_the_run_and_keeps_the_last_checkpoint(tmp_path, monkeypatch):
     cfg = compose_cfg(
         "+experiment=easy_small_dqn_her", "trainer.total_env_steps=2000", "trainer.checkpoint_interval=400", *SMALL

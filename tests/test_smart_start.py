@@ -511,10 +511,10 @@ def test_ucb_scores_formula_and_selection_agree():
 )
 @pytest.mark.parametrize("n_goals", [1, 3])
 def test_goal_q_values_match_the_network(encoder, dueling, n_goals, monkeypatch):
-    # goal_q_values splits the first layer into state and goal halves, folds the dueling head and works in blocks
-    # of rows: the same Q as the network's own forward pass up to float rounding, and the same smart start states.
-    from ss_drl.agents.dqn import GoalQNetwork
-    from ss_drl.smart_start.selection import goal_q_values
+    # GoalQNetwork.goal_q_values splits the first layer into state and goal halves, folds the dueling head and works
+    # in blocks of rows: the same Q as the network's own forward pass up to float rounding, and the same smart start
+    # states.
+    from ss_drl.agents.network import GoalQNetwork
 
     maze = load_maze("medium")
     torch.manual_seed(14)
@@ -522,10 +522,10 @@ def test_goal_q_values_match_the_network(encoder, dueling, n_goals, monkeypatch)
     model = _random_model(maze, 600, seed=15)
     states = model.visited_states()
     goals = torch.from_numpy(np.random.default_rng(16).choice(free_cells(maze), n_goals))
-    monkeypatch.setattr("ss_drl.smart_start.selection.BLOCK_ROWS", 64)  # several blocks, the last one partial
+    monkeypatch.setattr("ss_drl.agents.network.BLOCK_ROWS", 64)  # several blocks, the last one partial
     with torch.no_grad():
         want = net(states.repeat(n_goals), goals.repeat_interleave(states.numel())).view(n_goals, -1, 4)
-    got = goal_q_values(net, states, goals)
+    got = net.goal_q_values(states, goals)
     assert got.shape == want.shape and not got.requires_grad
     torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
 
@@ -533,7 +533,7 @@ def test_goal_q_values_match_the_network(encoder, dueling, n_goals, monkeypatch)
         return net(s.repeat(g.numel()), g.repeat_interleave(s.numel())).view(g.numel(), -1, 4).amax(-1).detach()
 
     def fast(s, g):
-        return goal_q_values(net, s, g).amax(-1)
+        return net.goal_q_values(s, g).amax(-1)
 
     expected = select_smart_start(model, plain, goals, 0.1, 1.0, torch.Generator().manual_seed(17))
     got = select_smart_start(model, fast, goals, 0.1, 1.0, torch.Generator().manual_seed(17))

@@ -137,6 +137,31 @@ def test_resume_auto_restarts_a_sweep_and_a_new_sweep_never_overwrites_one(tmp_p
 
 
 @pytest.mark.slow
+def test_a_resumed_sweep_holding_a_checkpoint_from_before_the_rename_is_refused(tmp_path):
+    """A sweep directory whose job holds a checkpoint written at 7ac5009 or before (no format marker): restarting
+    the sweep with trainer.resume=auto is refused as a whole, before any job, with one line, and leaves the sweep
+    directory as it was."""
+    import torch
+
+    from ss_drl.training.outputs import CHECKPOINT_FILE
+
+    sweep_dir = tmp_path / "sweep"
+    job = sweep_dir / "0_easy_small_dqn_her_seed0"
+    job.mkdir(parents=True)
+    torch.save({"config": {"method": "dqn_her"}, "evals": []}, job / CHECKPOINT_FILE)
+    (job / EPISODES_FILE).write_text("episode\n")
+    before = {p.relative_to(sweep_dir).as_posix(): p.read_bytes() for p in sweep_dir.rglob("*") if p.is_file()}
+    result = sweep(sweep_dir, "seed=0,1", "trainer.resume=auto")
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().splitlines() == [
+        f"ss-drl: config error: trainer.resume: {job / CHECKPOINT_FILE} was written before the learners were renamed "
+        "(docs/migration.md): continue it with a checkout of 7ac5009, or start a new run"
+    ]
+    after = {p.relative_to(sweep_dir).as_posix(): p.read_bytes() for p in sweep_dir.rglob("*") if p.is_file()}
+    assert after == before and sorted(p.name for p in sweep_dir.iterdir()) == [job.name]
+
+
+@pytest.mark.slow
 def test_submitit_local_multirun_isolates_a_failing_job(tmp_path):
     """The SLURM launcher's code path (hydra-submitit-launcher: pickled jobs, one process each, results collected
     back) through its local executor: the same layout and failure isolation as the joblib sweeps."""
@@ -282,6 +307,7 @@ def test_no_network_guard_blocks_and_records(no_network):
     assert no_network.proxied == 1
 
 
+@pytest.mark.slow  # a training run
 def test_wandb_offline_needs_no_network(tmp_path, monkeypatch, no_network):
     monkeypatch.setenv("WANDB_SILENT", "true")
     monkeypatch.setenv("WANDB_DIR", str(tmp_path))
@@ -301,6 +327,7 @@ def test_wandb_offline_needs_no_network(tmp_path, monkeypatch, no_network):
         assert key.encode() in records, f"{key} not in {record_log}"
 
 
+@pytest.mark.slow  # a training run
 def test_failing_wandb_init_falls_back_to_csv(tmp_path, monkeypatch):
     import wandb
 
@@ -314,3 +341,38 @@ def test_failing_wandb_init_falls_back_to_csv(tmp_path, monkeypatch):
     assert summary["completed"]
     assert (tmp_path / EPISODES_FILE).exists()
     assert [w for w in caught if "W&B is off" in str(w.message)]
+
+
+@pytest.mark.parametrize(
+    ("overrides", "group", "label"),
+    [
+        (["+experiment=easy_small_ss_her"], "easy_small_ss_her", "ss_her"),
+        (["+experiment=easy_small_ss_her_bounded"], "easy_small_ss_her_bounded", "ss_her_bounded"),
+        (["+experiment=easy_small_ss_her", "agent=dqn_bounded"], "easy_small_ss_her[ss_her_bounded]", "ss_her_bounded"),
+        (["+experiment=easy_small_dqn_her_bounded", "agent=dqn"], "easy_small_dqn_her_bounded[dqn_her]", "dqn_her"),
+        (["+experiment=easy_small_ss_her", "logger.group=mine"], "mine", "ss_her"),
+    ],
+)
+def test_wandb_groups_runs_by_what_they_ran(tmp_path, monkeypatch, overrides, group, label):
+    """The W&B group is the experiment name when it names the method that ran, else the experiment name with the
+    method label (an agent override never files one learner's runs under the other's name), and the job type the
+    method label (ss_drl/methods.py); logger.group, when set, is the group."""
+    import wandb
+
+    from ss_drl.training.outputs import RunLogger
+
+    calls = []
+
+    def init(**kwargs):
+        calls.append(kwargs)
+        raise RuntimeError("recorded")
+
+    monkeypatch.setattr(wandb, "init", init)
+    cfg = compose_cfg(*overrides, "logger=wandb", "logger.mode=offline")
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        RunLogger(tmp_path, cfg, resolved).close()
+    (call,) = calls
+    assert (call["group"], call["job_type"]) == (group, label)
+    assert call["name"] == f"{cfg.experiment}-seed0"

@@ -159,6 +159,7 @@ def test_smart_start_without_guided_phases_collects_the_same_transitions(tmp_pat
     assert not torch.equal(batch_on["action"], batch_none["action"])
 
 
+@pytest.mark.slow  # a training run
 def test_train_csv_rows_every_log_interval_updates(tmp_path):
     from ss_drl.agents import UPDATE_METRICS
     from ss_drl.ops import linear_schedule
@@ -197,39 +198,10 @@ def test_train_csv_rows_every_log_interval_updates(tmp_path):
     assert all(float(line.split(",")[column["goal_share"]]) == 1 for line in lines)
 
 
-@pytest.mark.parametrize("lr_end", [None, 0.0001])
-def test_learning_rate_decays_linearly_over_the_budget(tmp_path, monkeypatch, lr_end):
-    """``agent.lr_end``: every update of a batch collected from env step t uses lr + (t / budget) (lr_end - lr);
-    without it the rate stays ``agent.lr``."""
-    from ss_drl.agents.dqn import DQNAgent
-
-    seen = []  # (env steps when the batch was collected, learning rate of the update)
-    update = DQNAgent.update
-
-    def recording(agent):
-        seen.append(agent.learning_rate)
-        return update(agent)
-
-    monkeypatch.setattr(DQNAgent, "update", recording)
-    end = "null" if lr_end is None else lr_end
-    cfg = compose_cfg("+experiment=easy_small_ss_her", "trainer.total_env_steps=1000", f"agent.lr_end={end}", *SMALL)
-    trainer = Trainer(cfg, tmp_path)
-    trainer.train()
-    assert len(seen) >= 1000 - 100
-    if lr_end is None:
-        assert set(seen) == {0.001}
-        return
-    # The first updates (the batch that crosses env step 100, learning_starts) and the last (a batch that starts at
-    # most 16 steps before the end) against the hand values 0.001 - 0.0009 t / 1000.
-    assert 0.001 - 0.0009 * 100 / 1000 < seen[0] <= 0.001 - 0.0009 * 84 / 1000
-    assert 0.0001 <= seen[-1] <= 0.0001 + 0.0009 * 16 / 1000 + 1e-12  # a batch 16 steps before the end: rounding
-    assert all(a >= b for a, b in zip(seen, seen[1:]))
-    assert trainer.agent.optimizer.state_dict()["param_groups"][0]["lr"] == seen[-1]  # checkpointed with the optimizer
-
-
+@pytest.mark.slow  # a training run
 def test_the_evaluated_network_changes_only_the_evaluations(tmp_path):
-    """``agent.eval_network=target`` or ``average`` reads another network at evaluation and nothing else: the runs'
-    episodes and updates are the online run's, row for row, and each eval.csv holds its network's greedy rollouts."""
+    """``agent.eval_network=target`` reads another network at evaluation and nothing else: the run's episodes and
+    updates are the online run's, row for row, and each eval.csv holds its network's greedy rollouts."""
     from ss_drl.training.greedy import greedy_rollout
     from ss_drl.training.outputs import EVAL_FILE, TRAIN_FILE
 
@@ -239,7 +211,7 @@ def test_the_evaluated_network_changes_only_the_evaluations(tmp_path):
         return [[c for i, c in enumerate(row) if i not in timing] for row in rows]
 
     common = ["+experiment=easy_small_ss_her", "trainer.total_env_steps=1500", "env.max_steps=200", *SMALL]
-    for network in ("online", "target", "average"):
+    for network in ("online", "target"):
         trainer = Trainer(compose_cfg(*common, f"agent.eval_network={network}"), tmp_path / network)
         trainer.train()
         assert episode_rows(tmp_path / network) == episode_rows(tmp_path / "online")

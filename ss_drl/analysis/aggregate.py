@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ss_drl.analysis.tables import format_markdown_table
+from ss_drl.methods import method_label
 from ss_drl.training.learned import BOUND, LAST_QUARTER, SHARE, EvalRecord, Learned, learned
 from ss_drl.training.outputs import (
     CHECKPOINT_FILE,
@@ -115,6 +116,16 @@ class Run:
 
     @property
     def method(self) -> str:
+        """The method its resolved config ran (:func:`~ss_drl.methods.method_label`), never the stored label: a run
+        written before the learners were named (docs/migration.md) with the count model's bounds on is
+        ``*_bounded``. The stored label serves only a summary without a config that names the agent, HER and Smart
+        Start (hand-written ones)."""
+        config = self.summary.get("config")
+        if isinstance(config, dict):
+            try:
+                return method_label(config)
+            except (KeyError, TypeError, ValueError):  # a config without the agent, her or smart_start it reads
+                pass
         return str(self.summary[SK_METHOD])
 
     @property

@@ -41,6 +41,7 @@ import torch
 from ss_drl.analysis.aggregate import IncompleteRun, read_run_csv
 from ss_drl.analysis.tables import format_markdown_table
 from ss_drl.envs.maze import Maze
+from ss_drl.methods import method_label
 from ss_drl.training.greedy import greedy_accuracy, greedy_policy, greedy_rollout
 from ss_drl.training.learned import LAST_QUARTER
 from ss_drl.training.outputs import CHECKPOINT_FILE, EPISODES_FILE, SUMMARY_FILE, TRAIN_FILE, write_json_atomic
@@ -338,7 +339,7 @@ def _summary(run_dir: Path) -> dict:
 
 def diagnose_run(run_dir: str | Path, width: int = 10) -> dict:
     """Points 1-4 for one run directory (its checkpoint.pt, train.csv, episodes.csv and summary.json)."""
-    from ss_drl.evaluate import load_agent
+    from ss_drl.evaluate import OldCheckpoint, load_agent
 
     run_dir = Path(run_dir)
     if width < 1:
@@ -350,6 +351,8 @@ def diagnose_run(run_dir: str | Path, width: int = 10) -> dict:
     summary = _summary(run_dir)
     try:
         agent, maze, cfg = load_agent(run_dir)
+    except OldCheckpoint as e:
+        raise DiagnoseError(str(e)) from None
     except Exception as e:  # noqa: BLE001  (a broken checkpoint of any kind: one line naming the run)
         raise DiagnoseError(
             f"cannot load {run_dir / CHECKPOINT_FILE}: {type(e).__name__}: {' '.join(str(e).split())}"
@@ -360,7 +363,7 @@ def diagnose_run(run_dir: str | Path, width: int = 10) -> dict:
     return {
         "run_dir": str(run_dir),
         "experiment": str(cfg.experiment),
-        "method": str(cfg.get("method", "")),
+        "method": method_label(cfg),
         "seed": int(cfg.seed),
         "agent": str(cfg.agent.name),
         "agent_gamma": float(cfg.agent.gamma),

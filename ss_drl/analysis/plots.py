@@ -224,7 +224,9 @@ def make_report(
         "≤1.05× optimal: env steps until the greedy evaluation reached G within 5% of the shortest path "
         "(median over the seeds that got there). Learned: at least 90% of the greedy evaluations after 75% of the "
         "budget reached G within 5% of the shortest path; its env steps and wall s are those of the first evaluation "
-        "of the streak that stays learned (from it on, at least 90% within 5%), median over the seeds that learned.\n"
+        "of the streak that stays learned (from it on, at least 90% within 5%), median over the seeds that learned. "
+        "Method: what each run's resolved config ran (ss_drl/methods.py), never its stored label: `_bounded` is the "
+        "model-bounded DQN (count-model bounds on), no suffix the replay-only one.\n"
     )
     written.append(results)
     return table, written
@@ -233,7 +235,9 @@ def make_report(
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="plot.py",
-        description="Plot and tabulate run directories (Hydra run or multirun dirs, searched recursively).",
+        description="Plot and tabulate run directories (Hydra run or multirun dirs, searched recursively), grouped "
+        "by maze and by the method each run's resolved config ran (runs from before the learners were renamed "
+        "included: one with the count model's bounds on is *_bounded).",
     )
     p.add_argument("dirs", nargs="+", help="directories holding run directories (any depth)")
     p.add_argument("--out", default=None, help=f"output directory (default: <first dir>/{PLOTS_DIR})")

@@ -20,7 +20,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from ss_drl.envs.maze import Maze, load_maze
+from ss_drl.envs.maze import Maze, goal_reward, load_maze
 
 
 class BatchedMazeEnv(EnvBase):
@@ -91,7 +91,7 @@ class BatchedMazeEnv(EnvBase):
         cell = state["cell"] = self.next_cell[state["cell"], tensordict.get("action").reshape(self.num_envs)]
         steps = state["steps"]
         steps += 1
-        terminated = (cell == self._goal_cell).unsqueeze(-1)
+        terminated = goal_reward(cell, self._goal_cell).unsqueeze(-1)
         truncated = (steps >= self.max_steps).unsqueeze(-1) & ~terminated
         out = {
             "observation": cell,

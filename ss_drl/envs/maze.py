@@ -10,16 +10,25 @@ all speak in these indices.
 from __future__ import annotations
 
 import dataclasses
-from collections import deque
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
+from ss_drl.graph import breadth_first
+
 WALL, FREE, START, GOAL = "#", ".", "S", "G"
 
 #: Action ``a`` moves by ``ACTIONS[a]`` = (d_row, d_col): 0 right, 1 down, 2 left, 3 up (Keulen's order).
 ACTIONS: tuple[tuple[int, int], ...] = ((0, 1), (1, 0), (0, -1), (-1, 0))
+
+
+def goal_reward(achieved, goal):
+    """The reward rule, written once: 1 for entering the goal, 0 otherwise (a bool tensor, or bool, of where
+    ``achieved == goal``; callers cast). The env's reward for G, HER's reward for a relabeled goal and the count
+    model's one-step targets all use it."""
+    return achieved == goal
+
 
 #: Preset name -> file shipped in ``ss_drl/mazes``.
 PRESETS = ("easy", "medium", "hard", "extreme", "easy_small", "medium_small", "hard_small")
@@ -100,17 +109,11 @@ class Maze:
 
     def distances_from(self, pos: tuple[int, int]) -> np.ndarray:
         """BFS distances (in steps) from ``pos`` to every cell; -1 for walls and unreachable cells."""
-        dist = np.full(self.walls.shape, -1, dtype=np.int64)
-        dist[pos] = 0
-        queue = deque([tuple(pos)])
-        while queue:
-            cur = queue.popleft()
-            for a in range(len(ACTIONS)):
-                nxt = self.move(cur, a)
-                if dist[nxt] < 0:
-                    dist[nxt] = dist[cur] + 1
-                    queue.append(nxt)
-        return dist
+        dist = [-1] * self.n_cells
+        start = self.cell(pos)
+        dist[start] = 0
+        breadth_first([start], dist, self.transition_table().tolist())
+        return np.asarray(dist, dtype=np.int64).reshape(self.walls.shape)
 
     @property
     def shortest_path_length(self) -> int:

@@ -48,6 +48,26 @@ class ModelStructure:
         """Every tried (s, a) has been seen to lead to one successor only."""
         return self.n_layers == 1
 
+    def predecessors(self) -> tuple[dict[int, tuple[int, ...]], list[tuple[int, ...]]]:
+        """Predecessor lists for a breadth-first search backwards along observed transitions (the planner's
+        distances, the TD target's distance floor), cached in :attr:`derived`: the slots with a tried action into
+        each state (a dict by state) and into each slot (a list by slot; the dummy slot has none)."""
+        if "predecessors" not in self.derived:
+            n_v = self.states.numel()
+            edge = self.next_state != self.state
+            pairs = torch.unique(torch.stack((self.next_state[edge], self.row[edge]), dim=1), dim=0)  # by next state
+            targets, sources = pairs[:, 0].tolist(), pairs[:, 1].tolist()
+            into_state: dict[int, list[int]] = {}
+            for t, s in zip(targets, sources):
+                into_state.setdefault(t, []).append(s)
+            into_state = {t: tuple(s) for t, s in into_state.items()}
+            preds = [into_state.get(s, ()) for s in self.states.tolist()] + [()]
+            self.derived["predecessors"] = (into_state, preds)
+            self.derived["slot"] = self.slot.tolist()
+            self.derived["reward_index"] = self.action * n_v + self.row
+            self.derived["successor"] = self.successor.reshape(-1)
+        return self.derived["predecessors"]
+
 
 class CountModel:
     """Visit counts and a sparse learned transition model.

@@ -23,6 +23,7 @@ import dataclasses
 import numpy as np
 import torch
 
+from ss_drl.graph import breadth_first
 from ss_drl.ops import manhattan, random_argmax
 from ss_drl.smart_start.counts import CountModel, ModelStructure
 
@@ -130,7 +131,7 @@ class Planner:
         the distances and where the sweeps stop; q and V are then rebuilt from the last two sweeps' values.
         """
         n_b, n_v = terminal.shape[0], st.states.numel()
-        into_state, preds = self._predecessors(st)
+        into_state, preds = st.predecessors()
         p, k_tol = self._powers()
         # Sweep k changes V by p[k] >= tol while k <= depth (the deepest distance), so the sweeps stop at
         # min(depth + 1, k_tol, max_sweeps), k_tol the first k with p[k] < tol: levels past that are never needed.
@@ -151,7 +152,7 @@ class Planner:
                     if dist[y] < 0:
                         dist[y] = 1
                         front.append(y)
-            depth = max(depth, _bfs(front, dist, preds, limit))
+            depth = max(depth, breadth_first(front, dist, preds, limit))
             levels.append(np.fromiter(dist, np.int64, n_v + 1))
         sweeps = min(depth + 1, k_tol, self.max_sweeps)
         converged = min(depth + 1, k_tol) <= self.max_sweeps
@@ -181,47 +182,6 @@ class Planner:
         return self._powers_cache
 
     @staticmethod
-    def _predecessors(st: ModelStructure) -> tuple[dict[int, tuple[int, ...]], list[tuple[int, ...]]]:
-        """Predecessor lists for the breadth-first search, cached with the structure: the slots with a tried action
-        into each state (a dict by state) and into each slot (a list by slot; the dummy slot has none)."""
-        if "predecessors" not in st.derived:
-            n_v = st.states.numel()
-            edge = st.next_state != st.state
-            pairs = torch.unique(torch.stack((st.next_state[edge], st.row[edge]), dim=1), dim=0)  # by next state
-            targets, sources = pairs[:, 0].tolist(), pairs[:, 1].tolist()
-            into_state: dict[int, list[int]] = {}
-            for t, s in zip(targets, sources):
-                into_state.setdefault(t, []).append(s)
-            into_state = {t: tuple(s) for t, s in into_state.items()}
-            preds = [into_state.get(s, ()) for s in st.states.tolist()] + [()]
-            st.derived["predecessors"] = (into_state, preds)
-            st.derived["slot"] = st.slot.tolist()
-            st.derived["reward_index"] = st.action * n_v + st.row
-            st.derived["successor"] = st.successor.reshape(-1)
-        return st.derived["predecessors"]
-
-    @staticmethod
     def greedy(q: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """(B, S) argmax_a of q (S, A, B), ties broken uniformly at random."""
         return random_argmax(q, dim=1, generator=generator).T.contiguous()
-
-
-def _bfs(front: list[int], dist: list[int], preds: list[tuple[int, ...]], limit: int) -> int:
-    """Breadth-first search backwards from level 1 (``front``) up to level ``limit``, writing the levels into
-    ``dist`` (-1: not reached; entries >= 0 are never changed). Returns the deepest level reached (0: none)."""
-    if not front or limit < 1:
-        return 0
-    for x in front:
-        dist[x] = 1
-    level = 1
-    while level < limit:
-        nxt = []
-        for x in front:
-            for y in preds[x]:
-                if dist[y] < 0:
-                    dist[y] = level + 1
-                    nxt.append(y)
-        if not nxt:
-            break
-        front, level = nxt, level + 1
-    return level

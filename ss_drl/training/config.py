@@ -7,9 +7,10 @@ from __future__ import annotations
 
 import numbers
 
-from omegaconf import DictConfig, ListConfig
+from omegaconf import DictConfig
 
-from ss_drl.agents.dqn import ENCODERS
+from ss_drl.agents.settings import DQNSettings
+from ss_drl.agents.targets import MAZE, resolve_bounds
 from ss_drl.envs.maze import PRESETS, MazeError, load_maze
 from ss_drl.her import STRATEGIES
 
@@ -62,6 +63,21 @@ def _boolean(cfg, key: str) -> bool:
     return value
 
 
+def _command_line_keys(cfg: DictConfig, prefix: str) -> list[str]:
+    """The keys under ``prefix`` that the command line set (``key=value``, ``+key=value``, ``++key=value``)."""
+    try:
+        if "hydra" in cfg:
+            task = list(cfg.hydra.overrides.task)
+        else:
+            from hydra.core.hydra_config import HydraConfig
+
+            task = list(HydraConfig.get().overrides.task)
+    except (ValueError, AttributeError, KeyError):  # no Hydra run (a test composing the config itself)
+        return []
+    keys = (o.split("=", 1)[0].lstrip("+~") for o in task)
+    return [k[len(prefix) :] for k in keys if k.startswith(prefix)]
+
+
 def validate_config(cfg: DictConfig) -> None:
     """Check every value a run uses; raise :class:`ConfigError` on the first bad one."""
     _number(cfg, "seed", low=0, integer=True)
@@ -100,50 +116,34 @@ def validate_config(cfg: DictConfig) -> None:
     if name == "tabular":
         _number(cfg, "agent.alpha", low=0, high=1, low_open=True)
     else:
+        # Types, choices and unknown keys: the typed settings' schema. Ranges and combinations: here.
+        try:
+            settings = DQNSettings.from_config(cfg.agent)
+            # A bound the user turned on that this environment cannot support is refused here; one that comes with
+            # the learner's defaults is turned off when the run starts (ss_drl.training.trainer.dqn_settings).
+            resolve_bounds(settings, MAZE, explicit=_command_line_keys(cfg, "agent."))
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
         _number(cfg, "agent.lr", low=0, low_open=True)
-        if cfg.agent.get("lr_end") is not None:
-            _number(cfg, "agent.lr_end", low=0, low_open=True)
         batch = _number(cfg, "agent.batch_size", low=1, integer=True)
         buffer = _number(cfg, "agent.buffer_size", low=1, integer=True)
         if batch > buffer:
             raise ConfigError(f"agent.batch_size: {batch} is larger than agent.buffer_size ({buffer})")
-        _choice(cfg, "agent.encoder", ENCODERS)
         _number(cfg, "agent.embed_dim", low=1, integer=True)
-        hidden = _get(cfg, "agent.hidden")
-        if not isinstance(hidden, (list, ListConfig)) or not all(
-            isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in hidden
-        ):
-            raise ConfigError(f"agent.hidden: expected a list of positive integers, got {hidden!r}")
-        _boolean(cfg, "agent.dueling")
-        _choice(cfg, "agent.loss", ("l2", "smooth_l1"))
-        _boolean(cfg, "agent.double_dqn")
-        _choice(cfg, "agent.target_update", ("hard", "soft"))
         _number(cfg, "agent.target_update_interval", low=1, integer=True)
         _number(cfg, "agent.tau", low=0, high=1, low_open=True)
-        if _choice(cfg, "agent.eval_network", ("online", "target", "average")) == "average":
-            _number(cfg, "agent.eval_tau", low=0, high=1, low_open=True)
         _number(cfg, "agent.learning_starts", low=0, integer=True)
         _number(cfg, "agent.train_freq", low=1, integer=True)
         _number(cfg, "agent.gradient_steps", low=1, integer=True)
         _number(cfg, "agent.grad_clip", low=0)
         _number(cfg, "agent.step_cost", low=0)
-        _number(cfg, "agent.advantage_learning", low=0, high=1, high_open=True)
         _number(cfg, "agent.n_step", low=1, integer=True)
-        _boolean(cfg, "agent.clip_targets")
-        _boolean(cfg, "agent.hindsight_bound")
-        _boolean(cfg, "agent.n_step_max")
-        _boolean(cfg, "agent.distance_ceiling")
-        _boolean(cfg, "agent.distance_floor")
-        _boolean(cfg, "agent.model_targets")
-        if _boolean(cfg, "agent.bound_all_actions") and not (
-            _get(cfg, "agent.distance_floor") or _get(cfg, "agent.distance_ceiling")
-        ):
+        agent = cfg.agent
+        if agent.bound_all_actions and not (agent.distance_floor or agent.distance_ceiling):
             raise ConfigError("agent.bound_all_actions: needs agent.distance_floor or agent.distance_ceiling")
-        if _boolean(cfg, "agent.optimistic_floor") and not (
-            _get(cfg, "agent.distance_floor") and _get(cfg, "agent.distance_ceiling")
-        ):
+        if agent.optimistic_floor and not (agent.distance_floor and agent.distance_ceiling):
             raise ConfigError("agent.optimistic_floor: needs agent.distance_floor and agent.distance_ceiling")
-        if _get(cfg, "agent.gamma") == 1 and _get(cfg, "agent.step_cost") == 0:
+        if agent.gamma == 1 and agent.step_cost == 0:
             raise ConfigError("agent.gamma: 1 needs agent.step_cost > 0 (undiscounted 0/1 rewards make every value 1)")
     # HER
     _choice(cfg, "her.strategy", STRATEGIES)

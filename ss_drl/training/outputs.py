@@ -65,7 +65,7 @@ TRAIN_COLUMNS = (
 
 SUMMARY_KEYS = (
     "experiment",  # experiment name (e.g. "easy_ss_her")
-    "method",  # method label used by plots (e.g. "ss_her", "dqn", "tabular_ss")
+    "method",  # the method label, derived from the resolved config (ss_drl/methods.py; e.g. "ss_her", "dqn_bounded")
     "maze",  # maze name (preset or file)
     "seed",
     "completed",  # True once the run reached trainer.total_env_steps
@@ -144,16 +144,17 @@ class RunLogger:
             for path in paths:
                 path.unlink(missing_ok=True)
         else:
+            # Checked before any file is cut back, so that a refused resume leaves the run as it was.
+            for path, columns in zip(paths, (EPISODE_COLUMNS, EVAL_COLUMNS, TRAIN_COLUMNS)):
+                header = _header(path)
+                if header is not None and tuple(header) != columns:
+                    # Rows of another width appended under the old header would leave a file no one can parse.
+                    raise ValueError(
+                        f"trainer.resume: {path.name} has columns {','.join(header)} but this version writes "
+                        f"{','.join(columns)}; start the run anew"
+                    )
             for path, rows in zip(paths, resume_rows):
                 truncate_csv(path, rows)
-        for path, columns in zip(paths, (EPISODE_COLUMNS, EVAL_COLUMNS, TRAIN_COLUMNS)):
-            header = _header(path)
-            if header is not None and tuple(header) != columns:
-                # Rows of another width appended under the old header would leave a file no one can parse.
-                raise ValueError(
-                    f"trainer.resume: {path.name} has columns {','.join(header)} but this version writes "
-                    f"{','.join(columns)}; start the run anew"
-                )
         self._episodes = self._open(self.episodes_path, EPISODE_COLUMNS)
         self._eval = self._open(self.eval_path, EVAL_COLUMNS)
         self._train = self._open(self.train_path, TRAIN_COLUMNS)
@@ -183,10 +184,14 @@ class RunLogger:
         try:
             import wandb
 
+            from ss_drl.methods import method_label
+
+            label = method_label(resolved_config)
             return wandb.init(
                 project=logger_cfg.project,
                 entity=logger_cfg.entity,
-                group=logger_cfg.group or cfg.experiment,
+                group=wandb_group(logger_cfg.group, str(cfg.experiment), label),
+                job_type=label,
                 name=f"{cfg.experiment}-seed{cfg.seed}",
                 mode=logger_cfg.mode,
                 dir=str(self.run_dir),
@@ -249,6 +254,18 @@ class RunLogger:
                         self.wandb.summary[key] = value
             self.wandb.finish()
             self.wandb = None
+
+
+def wandb_group(group: str | None, experiment: str, label: str) -> str:
+    """The W&B group of a run: ``logger.group`` if set, else the experiment name when it names the method that ran
+    (``easy_ss_her`` for ``ss_her``, ``easy_ss_her_bounded`` for ``ss_her_bounded``), else the experiment name with
+    that method label (``easy_ss_her[ss_her_bounded]`` for ``+experiment=easy_ss_her agent=dqn_bounded``): a group
+    never puts one learner's runs under the other's name."""
+    if group:
+        return str(group)
+    if experiment == label or experiment.endswith("_" + label):
+        return experiment
+    return f"{experiment}[{label}]"
 
 
 def progress_bar(total: int, initial: int = 0):

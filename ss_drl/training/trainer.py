@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import random
 import signal
+import sys
 import time
 from collections import deque
 from pathlib import Path
@@ -29,6 +30,7 @@ from omegaconf import DictConfig, OmegaConf
 from ss_drl.agents import UPDATE_METRICS, Agent
 from ss_drl.envs.batched import BatchedMazeEnv
 from ss_drl.envs.maze import Maze, load_maze
+from ss_drl.methods import method_label
 from ss_drl.ops import linear_schedule
 from ss_drl.smart_start import CountModel, Planner, SmartStart
 from ss_drl.training import checkpoint as ckpt
@@ -37,7 +39,14 @@ from ss_drl.training.config import validate_config
 from ss_drl.training.figures import plot_visit_counts
 from ss_drl.training.greedy import greedy_rollout
 from ss_drl.training.learned import EvalRecord, learned
-from ss_drl.training.outputs import FAILED_FILE, SUMMARY_FILE, RunLogger, progress_bar, write_json_atomic
+from ss_drl.training.outputs import (
+    CHECKPOINT_FILE,
+    FAILED_FILE,
+    SUMMARY_FILE,
+    RunLogger,
+    progress_bar,
+    write_json_atomic,
+)
 
 
 class TrainingInterrupted(Exception):
@@ -99,26 +108,43 @@ def make_maze(env_cfg) -> Maze:
 
 
 def make_agent(cfg: DictConfig, maze: Maze, seed: int, counts: CountModel | None = None) -> Agent:
-    """The learner named by ``agent.name``: ``dqn`` (with its HER replay buffer) or ``tabular``."""
+    """The learner named by ``agent.name``: ``dqn`` (with its HER replay buffer and its TD target, whose bounds read
+    ``counts``) or ``tabular``."""
     if cfg.agent.name == "tabular":
         from ss_drl.agents.tabular import TabularQAgent
 
         return TabularQAgent(cfg.agent, maze, seed=seed)
-    from ss_drl.agents.dqn import DQNAgent
+    from ss_drl.agents.dqn import DQNAgent, value_range
+    from ss_drl.agents.targets import make_td_target
     from ss_drl.her import HindsightReplayBuffer
 
+    settings = dqn_settings(cfg)
     buffer = HindsightReplayBuffer(
-        capacity=cfg.agent.buffer_size,
+        capacity=settings.buffer_size,
         num_envs=cfg.env.num_envs,
-        batch_size=cfg.agent.batch_size,
+        batch_size=settings.batch_size,
         strategy=cfg.her.strategy,
         k=cfg.her.k,
-        n_step=cfg.agent.n_step,
-        gamma=cfg.agent.gamma,
-        goal_steps=cfg.agent.get("hindsight_bound", False),
-        window_states=cfg.agent.get("n_step_max", False),
+        n_step=settings.n_step,
+        gamma=settings.gamma,
+        goal_steps=settings.hindsight_bound,
+        window_states=settings.n_step_max,
     )
-    return DQNAgent(cfg.agent, maze, buffer, seed=seed, max_steps=cfg.env.max_steps, counts=counts)
+    clip = value_range(settings.gamma, settings.step_cost, cfg.env.max_steps) if settings.clip_targets else None
+    td_target = make_td_target(settings, maze, counts, clip)
+    return DQNAgent(settings, maze, buffer, td_target, seed=seed, max_steps=cfg.env.max_steps)
+
+
+def dqn_settings(cfg: DictConfig):
+    """The DQN learner's typed settings, with every bound whose assumption the environment breaks turned off (one
+    line each on stderr; :func:`~ss_drl.agents.targets.resolve_bounds`)."""
+    from ss_drl.agents.settings import DQNSettings
+    from ss_drl.agents.targets import MAZE, resolve_bounds
+
+    settings, lines = resolve_bounds(DQNSettings.from_config(cfg.agent), MAZE)
+    for line in lines:
+        print(f"ss-drl: {line}", file=sys.stderr)
+    return settings
 
 
 def make_smart_start(cfg: DictConfig, maze: Maze, counts: CountModel, seed: int) -> SmartStart | None:
@@ -174,8 +200,7 @@ class Trainer:
     def train(self) -> dict:
         cfg, agent, collector = self.cfg, self.agent, self.collector
         total = int(cfg.trainer.total_env_steps)
-        schedule = cfg.agent  # epsilon's schedule, and the DQN learner's learning-rate decay if lr_end is set
-        lr_end = schedule.get("lr_end")
+        schedule = cfg.agent  # epsilon's schedule
         start = time.perf_counter()
         self.start_time = start - self.wall_before
         self.update_log = update_log = UpdateLog(agent.updates)
@@ -187,8 +212,6 @@ class Trainer:
                 agent.epsilon = linear_schedule(
                     collector.env_steps, schedule.eps_start, schedule.eps_end, schedule.eps_decay_steps
                 )
-                if lr_end is not None:
-                    agent.learning_rate = linear_schedule(collector.env_steps, schedule.lr, lr_end, total)
                 batch, finished = collector.rollout(max_frames=total - collector.env_steps)
                 # 2. Count model.
                 self.counts.update(
@@ -336,7 +359,7 @@ class Trainer:
         rule = learned(self.evals, self.optimal_length, int(self.cfg.trainer.total_env_steps))
         return {
             "experiment": self.cfg.experiment,
-            "method": self.cfg.method,
+            "method": method_label(self.resolved),
             "maze": self.maze.name,
             "seed": int(self.cfg.seed),
             "completed": completed,
@@ -367,6 +390,7 @@ class Trainer:
     # --- checkpoints -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
         return {
+            ckpt.FORMAT_KEY: ckpt.FORMAT,  # a checkpoint without it predates the learners' names: refused on resume
             "agent": self.agent.state_dict(),
             "counts": self.counts.state_dict(),
             "smart_start": None if self.smart_start is None else self.smart_start.state_dict(),
@@ -395,6 +419,7 @@ class Trainer:
 
     def _restore(self) -> tuple[int, ...]:
         state = ckpt.load(self.run_dir)
+        ckpt.check_format(state, self.run_dir / CHECKPOINT_FILE)  # before anything else of it is read
         if "evals" not in state:  # written before 844f19d: no evaluation list, and the old loop's collector state
             raise ValueError("trainer.resume: the checkpoint predates the list of evaluations; start the run anew")
         ckpt.check_compatible(state["config"], self.resolved)

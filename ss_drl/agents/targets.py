@@ -1,0 +1,542 @@
+"""The TD target of the goal-conditioned DQN, as named parts.
+
+For a sampled transition (s_t, a_t, g) whose window runs m steps (``n_steps``, set by the HER buffer):
+
+1. **Base target** (:class:`TDTarget`): ``y = R + gamma^m (1 - terminated) Q'(s_{t+m}, argmax_a Q(s_{t+m}, a))``,
+   with R the learner's return over the window (:func:`learner_reward`: the env's 0/1 goal reward, one shared
+   rule, minus ``step_cost`` per step) and the double-DQN bootstrap (the online network picks, the target network
+   evaluates; with ``double_dqn`` off the target network's max).
+2. **Bounds** (:class:`Bound`): each gives a lower and/or an upper bound on the taken action's value, and, where it
+   can, on every action of s_t. The target is then ``clamp(y, max(lower bounds), min(upper bounds))``: no target
+   below the largest lower bound, none above the smallest upper bound (if they cross, the upper wins), and last
+   ``clamp(value_range)`` (``agent.clip_targets``: the values a policy can have).
+3. **The other actions** (:class:`ModelTargets`, and the all-action bounds): every action of s_t but the taken one
+   holds either the one-step target through the successor the count model observed for it or its own (detached)
+   prediction, clamped the same way into its all-action bounds and the value range. The loss adds each one's
+   distance to that held value (zero where nothing holds it elsewhere).
+
+That order is the only one, and it is written once, in :meth:`TDTarget.taken` and :meth:`TDTarget.others`.
+
+Each bound states what it assumes (:data:`ASSUMPTIONS`). A run turns off a bound whose assumption its environment
+breaks, before training, with one line naming it (:func:`resolve_bounds`); a bound the user set explicitly is
+refused instead.
+
+The bounds (switches in :class:`~ss_drl.agents.settings.DQNSettings`):
+
+========================  =====================  ==================================================================
+bound                     gives                  assumes
+========================  =====================  ==================================================================
+``hindsight_bound``       lower, taken action    the stored episode, deterministic moves
+``n_step_max``            lower, taken action    the stored episode, deterministic moves
+``distance_floor``        lower, all actions*    the count model, deterministic moves (+ grid with four moves
+                                                 with ``optimistic_floor``)
+``distance_ceiling``      upper, all actions*    the count model, deterministic moves, grid with four moves
+``model_targets``         the other actions      the count model, deterministic moves
+========================  =====================  ==================================================================
+
+(*) on every action of s_t with ``bound_all_actions``; the taken action's only without.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+
+from ss_drl.agents.settings import COUNT_MODEL_KEYS
+from ss_drl.envs.maze import ACTIONS, Maze, goal_reward
+from ss_drl.graph import breadth_first
+
+#: What a bound may assume about the environment, and what each assumption means.
+ASSUMPTIONS = {
+    "stored_episode": "the stored episode's own steps (nothing outside the replay buffer)",
+    "deterministic": "deterministic moves: the same action from the same state always leads to the same state",
+    "grid_four_moves": "the state is a grid cell and each of the four moves leads to its neighbour or stays",
+    "count_model": "the count model's observed transitions",
+}
+
+#: What a Keulen maze (``env.preset`` / ``env.layout``) offers: every assumption holds.
+MAZE = frozenset(ASSUMPTIONS)
+
+#: A bootstrap: (states, goals) -> (..., 1) the target network's value of the online network's greedy action.
+Bootstrap = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+def discounted_steps(steps: torch.Tensor, gamma: float) -> torch.Tensor:
+    """sum_{j<m} gamma^j for m = ``steps``: what a cost of 1 per step adds up to over m steps."""
+    return steps if gamma == 1 else (1 - gamma**steps) / (1 - gamma)
+
+
+def learner_reward(
+    env_return: torch.Tensor, steps: torch.Tensor | None, gamma: float, step_cost: float
+) -> torch.Tensor:
+    """The learner's return over ``steps`` steps (None: one step) whose env return (the discounted sum of the 0/1
+    goal rewards of :func:`~ss_drl.envs.maze.goal_reward`) is ``env_return``: ``step_cost`` is taken off every
+    step, so with ``step_cost = 1`` and ``gamma = 1`` a step costs -1 and entering the goal 0 (the shortest-path
+    form)."""
+    if not step_cost:
+        return env_return
+    if steps is None:
+        return env_return - step_cost
+    return env_return - step_cost * discounted_steps(steps.to(torch.float32), gamma)
+
+
+def path_value(steps: torch.Tensor, gamma: float, step_cost: float) -> torch.Tensor:
+    """The learner's value of entering the goal on the k-th step, k = ``steps`` (k - 1 steps, then the goal):
+    ``gamma^(k-1) - step_cost * sum_{j<k} gamma^j``, ``-(k - 1)`` in the shortest-path form; -inf where k = 0
+    (no such path known). Every distance bound is this function of a step count."""
+    k = steps.to(torch.float32)
+    value = gamma ** (k - 1) - step_cost * discounted_steps(k, gamma)
+    return torch.where(steps > 0, value, torch.full_like(value, -torch.inf))
+
+
+@dataclasses.dataclass(frozen=True)
+class Scale:
+    """The learner's reward scale, shared by the base target and every bound."""
+
+    gamma: float
+    step_cost: float
+
+
+# --- bounds -------------------------------------------------------------------------------------------------------
+class Bound:
+    """A bound on the TD target. Subclasses override what they give; ``None`` means "no bound of this kind".
+
+    ``key`` is its switch in the agent settings; ``assumes`` what must hold of the environment (keys of
+    :data:`ASSUMPTIONS`).
+    """
+
+    key: str = ""
+    assumes: frozenset[str] = frozenset()
+
+    def bootstrap_states(self, sample: TensorDictBase) -> torch.Tensor | None:
+        """(B, k) extra states whose bootstrapped values :meth:`lower` needs, evaluated in the base target's own
+        pass (None: none)."""
+        return None
+
+    def lower(self, sample: TensorDictBase, values: torch.Tensor | None) -> torch.Tensor | None:
+        """(B, 1) a lower bound on the taken action's value (``values``: the bootstraps of
+        :meth:`bootstrap_states`)."""
+        return None
+
+    def upper(self, sample: TensorDictBase) -> torch.Tensor | None:
+        """(B, 1) an upper bound on the taken action's value."""
+        return None
+
+    def lower_all(self, sample: TensorDictBase) -> torch.Tensor | None:
+        """(B, A) a lower bound on every action's value."""
+        return None
+
+    def upper_all(self, sample: TensorDictBase) -> torch.Tensor | None:
+        """(B, A) an upper bound on every action's value."""
+        return None
+
+
+class HindsightBound(Bound):
+    """He et al. 2017's lower bound from the stored path: a sample whose goal the stored episode reached k =
+    ``goal_steps`` steps on (a relabeled goal achieved later, or G in an episode that entered it) has
+    ``Q*(s_t, a_t||g) >= path_value(k)``, since the same k actions reach g again (``agent.hindsight_bound``)."""
+
+    key = "hindsight_bound"
+    assumes = frozenset({"stored_episode", "deterministic"})
+
+    def __init__(self, scale: Scale):
+        self.scale = scale
+
+    def lower(self, sample, values):
+        return path_value(sample.get("goal_steps"), self.scale.gamma, self.scale.step_cost)
+
+
+class KStepMax(Bound):
+    """The k-step maximum (``agent.n_step_max``): each k-step target of the sample's window, k = 1..m - 1 (no goal
+    entered and no episode end before step m), is itself the return of a path the agent walked, bootstrapped, so
+    in a deterministic maze it bounds the target from below; steps of the window that head away from the goal (a
+    guided phase, an exploratory action) then no longer drag the target down."""
+
+    key = "n_step_max"
+    assumes = frozenset({"stored_episode", "deterministic"})
+
+    def __init__(self, scale: Scale, n_step: int):
+        self.scale = scale
+        k = torch.arange(1, int(n_step), dtype=torch.float32)
+        self.k = torch.arange(1, int(n_step))
+        # The learner's return over the window's first k = 1..n-1 steps, none of which entered the goal.
+        self.window_reward = -scale.step_cost * discounted_steps(k, scale.gamma)
+        self.discount = scale.gamma ** self.k.to(torch.float32)
+
+    def bootstrap_states(self, sample):
+        window = sample.get("window_observation")
+        return window[:, :-1] if window.shape[-1] >= 2 else None  # the states after k = 1..n-1 steps
+
+    def lower(self, sample, values):
+        if values is None:
+            return None
+        shorter = self.window_reward + self.discount * values
+        shorter = torch.where(self.k < sample.get("n_steps"), shorter, torch.full_like(shorter, -torch.inf))
+        return shorter.amax(-1, keepdim=True)
+
+
+class _GoalDistance:
+    """Steps to the real goal G per (s, a), kept in step with the count model, turned into a bound for the samples
+    whose goal is G (other goals: no bound)."""
+
+    def __init__(self, counts, goal: int, scale: Scale, all_actions: bool):
+        self.counts, self.goal, self.scale, self.all_actions = counts, int(goal), scale, bool(all_actions)
+        self._keys: torch.Tensor | None = None  # the key array the steps were computed from
+        self._steps: torch.Tensor | None = None
+
+    def steps(self) -> torch.Tensor:
+        """(S * A,) float32, flat ``s * A + a``: the step count of the bound (0: none); cached until the count
+        model sees a new transition."""
+        keys = self.counts.keys
+        if self._steps is None or keys is not self._keys:
+            self._keys, self._steps = keys, self._compute()
+        return self._steps
+
+    def _compute(self) -> torch.Tensor:
+        raise NotImplementedError
+
+    def bound_for_g(self, sample: TensorDictBase, steps: torch.Tensor, other: float, all_actions: bool):
+        """(B, 1) ``path_value`` of ``steps`` at (s_t, a_t) for samples whose goal is G, ``other`` elsewhere; with
+        ``all_actions``, (B, A) for every action of s_t."""
+        obs = sample.get("observation")
+        if all_actions:
+            k = steps.view(-1, len(ACTIONS))[obs]
+        else:
+            k = steps[obs * len(ACTIONS) + sample.get("action")]
+        bound = path_value(k, self.scale.gamma, self.scale.step_cost).reshape(obs.shape[0], -1)
+        real = (sample.get("desired_goal") == self.goal).reshape(-1, 1)
+        return torch.where(real, bound, torch.full_like(bound, other))
+
+
+class DistanceCeiling(_GoalDistance, Bound):
+    """The fewest steps to G the count model cannot rule out, as an upper bound on the targets for G
+    (``agent.distance_ceiling``).
+
+    In a grid maze a wall is a cell, and a move into it is seen as a bump: a tried (s, a) that stayed at s although
+    the cell it points to lies inside the grid. The *optimistic maze* has as walls only the cells the count model
+    has seen bumped into; every other cell, visited or not, is free. The true maze has more walls, so its distances
+    are never shorter: d_opt(s, G) <= d(s, G). Per (s, a) the ceiling's steps are ``1 + d_opt(s')``, s' the observed
+    successor of a tried (s, a), and for an untried one the nearer of its two possible successors (the neighbour,
+    or s itself if the neighbour turns out to be a wall); their value bounds Q*(s, a||G) from above.
+    """
+
+    key = "distance_ceiling"
+    assumes = frozenset({"count_model", "deterministic", "grid_four_moves"})
+
+    def __init__(self, counts, height: int, width: int, goal: int, scale: Scale, all_actions: bool = False):
+        super().__init__(counts, goal, scale, all_actions)
+        self.height, self.width = int(height), int(width)
+        n = self.height * self.width
+        if counts.n_states != n or counts.n_actions != len(ACTIONS):
+            raise ValueError(f"count model has {counts.n_states} states x {counts.n_actions} actions, grid {n} x 4")
+        rows, cols = np.divmod(np.arange(n), self.width)
+        #: (S, A) the cell each move points to, -1 off the grid
+        self.neighbour = np.full((n, len(ACTIONS)), -1, dtype=np.int64)
+        for a, (dr, dc) in enumerate(ACTIONS):
+            r, c = rows + dr, cols + dc
+            inside = (r >= 0) & (r < self.height) & (c >= 0) & (c < self.width)
+            self.neighbour[inside, a] = r[inside] * self.width + c[inside]
+        self._walls: np.ndarray | None = None
+        self._distance: np.ndarray | None = None
+
+    def known_walls(self) -> np.ndarray:
+        """(S,) bool: cells the count model has seen a move bump into."""
+        n, a_n = self.counts.n_states, self.counts.n_actions
+        keys = self.counts.keys.numpy()
+        sa, s2 = keys // n, keys % n
+        s, a = sa // a_n, sa % a_n
+        target = self.neighbour[s, a]
+        bumped = (s2 == s) & (target >= 0)
+        walls = np.zeros(n, dtype=bool)
+        walls[target[bumped]] = True
+        return walls
+
+    def distances(self, walls: np.ndarray) -> np.ndarray:
+        """(S,) steps from every cell to G in the maze whose only walls are ``walls``; a cell that cannot reach it
+        gets S (more than any simple path). Moves are reversible in a grid, so the search runs from G."""
+        n = walls.size
+        blocked = walls.tolist()
+        adjacency = [[y for y in row if y >= 0 and not blocked[y]] for row in self.neighbour.tolist()]
+        dist = [-1] * n
+        dist[self.goal] = 0
+        breadth_first([self.goal], dist, adjacency)
+        dist = np.asarray(dist, dtype=np.int64)
+        dist[dist < 0] = n
+        return dist
+
+    def _compute(self) -> torch.Tensor:
+        keys = self.counts.keys
+        walls = self.known_walls()
+        if self._distance is None or not np.array_equal(walls, self._walls):  # a new wall: search again
+            self._walls, self._distance = walls, self.distances(walls)
+        dist = self._distance
+        n, a_n = self.counts.n_states, self.counts.n_actions
+        here = np.repeat(dist, a_n).reshape(n, a_n)  # s itself (a bump)
+        target = self.neighbour
+        there = np.where(target >= 0, dist[np.maximum(target, 0)], n)
+        there = np.where((target >= 0) & walls[np.maximum(target, 0)], n, there)  # a known wall is no successor
+        nearer = np.minimum(here, there).reshape(-1)  # untried (s, a): whichever successor it turns out to have
+        known = keys.numpy()
+        nearer[known // n] = dist[known % n]  # tried (s, a): the successor observed (one, in a deterministic maze)
+        return torch.from_numpy(1 + nearer).to(torch.float32)
+
+    def upper(self, sample):
+        return self.bound_for_g(sample, self.steps(), torch.inf, all_actions=False)
+
+    def upper_all(self, sample):
+        return self.bound_for_g(sample, self.steps(), torch.inf, all_actions=True) if self.all_actions else None
+
+
+class DistanceFloor(_GoalDistance, Bound):
+    """The fewest steps to G along transitions the count model has observed, as a lower bound on the targets for G
+    (``agent.distance_floor``): those steps are walked again by repeating their actions, so in a deterministic maze
+    their value bounds Q*(s, a||G) from below (the hindsight bound with every stored episode stitched into one
+    graph). Per tried (s, a) with observed successor s' the steps are ``1 + d_known(s')``; none where (s, a) is
+    untried or s' has no observed route to G.
+
+    With ``optimistic`` (``agent.optimistic_floor``) the floor where no observed route is known is the ceiling's
+    value instead, so G's target there *is* the ceiling: optimism under the free-space assumption. Before the first
+    goal the greedy policy for G heads for G through cells not yet known, and an untried action keeps that value
+    until it is tried.
+    """
+
+    key = "distance_floor"
+    assumes = frozenset({"count_model", "deterministic"})
+
+    def __init__(
+        self, counts, goal: int, scale: Scale, all_actions: bool = False, optimistic: DistanceCeiling | None = None
+    ):
+        super().__init__(counts, goal, scale, all_actions)
+        self.optimistic = optimistic
+        if optimistic is not None:
+            self.assumes = self.assumes | optimistic.assumes
+        self._merged: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None  # (floor, ceiling, merged)
+
+    def distances(self) -> np.ndarray:
+        """(S,) d_known: the fewest observed transitions from each cell into G; 0 at G, -1 where no observed route
+        leads there. The search runs backwards from G on the count model's predecessor lists."""
+        st = self.counts.structure()
+        if not st.deterministic:
+            raise ValueError(
+                "agent.distance_floor needs a deterministic maze: some (s, a) was seen to lead to two cells"
+            )
+        into_state, preds = st.predecessors()
+        n_v = st.states.numel()
+        dist = [-1] * (n_v + 1)
+        dist[n_v] = 0  # the dummy slot (unvisited cells) is never reached
+        slot = st.derived["slot"][self.goal]
+        if slot < n_v:
+            dist[slot] = 0  # the goal is terminal and normally never departed from, so it has no slot
+        front = [y for y in into_state.get(self.goal, ()) if dist[y] < 0]
+        for y in front:
+            dist[y] = 1
+        breadth_first(front, dist, preds, n_v + 1)
+        full = np.full(self.counts.n_states, -1, dtype=np.int64)
+        full[st.states.numpy()] = dist[:n_v]
+        full[self.goal] = 0
+        return full
+
+    def _compute(self) -> torch.Tensor:
+        keys = self.counts.keys
+        n = self.counts.n_states
+        steps = np.zeros(n * self.counts.n_actions, dtype=np.int64)
+        if keys.numel():
+            dist = self.distances()
+            known = keys.numpy()
+            d = dist[known % n]
+            steps[known[d >= 0] // n] = 1 + d[d >= 0]
+        return torch.from_numpy(steps).to(torch.float32)
+
+    def floor_steps(self) -> torch.Tensor:
+        """:meth:`steps`, with the ceiling's where no route is known when ``optimistic``."""
+        steps = self.steps()
+        if self.optimistic is None:
+            return steps
+        ceiling, cached = self.optimistic.steps(), self._merged
+        if cached is None or cached[0] is not steps or cached[1] is not ceiling:  # both cached until a new key
+            self._merged = cached = (steps, ceiling, torch.where(steps > 0, steps, ceiling))
+        return cached[2]
+
+    def lower(self, sample, values):
+        return self.bound_for_g(sample, self.floor_steps(), -torch.inf, all_actions=False)
+
+    def lower_all(self, sample):
+        return self.bound_for_g(sample, self.floor_steps(), -torch.inf, all_actions=True) if self.all_actions else None
+
+
+# --- the other actions --------------------------------------------------------------------------------------------
+class ModelTargets:
+    """One-step targets for the actions not taken (``agent.model_targets``): every action of s_t that the count
+    model has seen from s_t gets ``r - step_cost + gamma V'(s'||g)`` through the successor s' it observed, for the
+    sample's goal (relabeled ones too; entering g ends). A bump's value is then its state's value minus one step,
+    however rarely it was taken."""
+
+    key = "model_targets"
+    assumes = frozenset({"count_model", "deterministic"})
+
+    def __init__(self, counts, scale: Scale):
+        self.counts, self.scale = counts, scale
+
+    def __call__(self, sample: TensorDictBase, held: torch.Tensor, bootstrap: Bootstrap) -> torch.Tensor:
+        """(B, A) ``held`` with each action the count model has seen from s_t replaced by its one-step target."""
+        succ = self.counts.successors().view(-1, len(ACTIONS))[sample.get("observation")]  # -1: untried
+        goal = sample.get("desired_goal")
+        entered = goal_reward(succ, goal.reshape(-1, 1))
+        reward = learner_reward(entered.to(torch.float32), None, self.scale.gamma, self.scale.step_cost)
+        values = bootstrap(succ.clamp(min=0).flatten(), goal.repeat_interleave(held.shape[-1])).view(held.shape)
+        target = reward + self.scale.gamma * (~entered).to(values.dtype) * values
+        return torch.where(succ >= 0, target, held)
+
+
+# --- the target ---------------------------------------------------------------------------------------------------
+def _clamp(x: torch.Tensor, lowers: list, uppers: list) -> torch.Tensor:
+    """``x`` raised to the largest of ``lowers`` and then lowered to the smallest of ``uppers`` (``None`` entries:
+    no bound): ``min(max(x, max lowers), min uppers)``, so where a lower and an upper bound cross the upper wins."""
+    for low in lowers:
+        if low is not None:
+            x = torch.maximum(x, low)
+    for high in uppers:
+        if high is not None:
+            x = torch.minimum(x, high)
+    return x
+
+
+class TDTarget:
+    """The base target, clamped between the largest lower and the smallest upper bound, then clipped to
+    ``value_range``; and what the other actions are held to (see the module's docstring)."""
+
+    def __init__(
+        self,
+        scale: Scale,
+        bounds: Sequence[Bound] = (),
+        model_targets: ModelTargets | None = None,
+        value_range: tuple[float, float] | None = None,
+    ):
+        self.scale = scale
+        self.bounds = tuple(bounds)
+        self.model_targets = model_targets
+        self.value_range = value_range
+        self.bounds_all_actions = any(getattr(b, "all_actions", False) for b in self.bounds)
+
+    @property
+    def names(self) -> list[str]:
+        """The switches of the bounds in force, in the order they are listed."""
+        return [b.key for b in self.bounds] + ([self.model_targets.key] if self.model_targets is not None else [])
+
+    def learner_return(self, sample: TensorDictBase) -> torch.Tensor:
+        """(B, 1) the learner's return over the sample's m-step window."""
+        return learner_reward(
+            sample.get(("next", "reward")), sample.get("n_steps"), self.scale.gamma, self.scale.step_cost
+        )
+
+    def taken(self, sample: TensorDictBase, bootstrap: Bootstrap) -> torch.Tensor:
+        """(B, 1) the target of the taken action a_t."""
+        next_obs, next_goal = sample.get(("next", "observation")), sample.get(("next", "desired_goal"))
+        extra = [(b, b.bootstrap_states(sample)) for b in self.bounds]
+        extra = [(b, s) for b, s in extra if s is not None]
+        values = {}
+        if extra:  # one pass over the next states and every bound's extra states
+            states = torch.cat([next_obs.unsqueeze(1)] + [s for _, s in extra], dim=1)
+            out = bootstrap(states.flatten(), next_goal.unsqueeze(1).expand_as(states).flatten()).view(states.shape)
+            next_value, at = out[:, :1], 1
+            for b, s in extra:
+                values[id(b)] = out[:, at : at + s.shape[1]]
+                at += s.shape[1]
+        else:
+            next_value = bootstrap(next_obs, next_goal)
+        not_terminal = (~sample.get(("next", "terminated"))).to(next_value.dtype)
+        discount = self.scale.gamma ** sample.get("n_steps").to(next_value.dtype)  # gamma^m after m steps
+        target = self.learner_return(sample) + discount * not_terminal * next_value
+        lowers = [b.lower(sample, values.get(id(b))) for b in self.bounds]
+        uppers = [b.upper(sample) for b in self.bounds]
+        target = _clamp(target, lowers, uppers)
+        if self.value_range is not None:
+            target = target.clamp(*self.value_range)
+        return target
+
+    @property
+    def holds_other_actions(self) -> bool:
+        return self.model_targets is not None or self.bounds_all_actions
+
+    def others(self, sample: TensorDictBase, q_all: torch.Tensor, bootstrap: Bootstrap) -> torch.Tensor | None:
+        """(B, A) what each action of s_t is held to (the taken one's entry is unused): its model target or its own
+        prediction ``q_all`` (detached), clamped into its all-action bounds and the value range; None when nothing
+        holds the other actions."""
+        if not self.holds_other_actions:
+            return None
+        held = q_all.detach()
+        if self.model_targets is not None:
+            held = self.model_targets(sample, held, bootstrap)
+        lowers = [b.lower_all(sample) for b in self.bounds]
+        uppers = [b.upper_all(sample) for b in self.bounds]
+        held = _clamp(held, lowers, uppers)
+        if self.value_range is not None:
+            held = held.clamp(*self.value_range)
+        return held
+
+
+# --- building the target from the settings ------------------------------------------------------------------------
+
+
+def assumptions(settings) -> dict[str, frozenset[str]]:
+    """Per switch that is on in ``settings`` (bounds and their modifiers), what it assumes."""
+    out = {}
+    if settings.hindsight_bound:
+        out["hindsight_bound"] = HindsightBound.assumes
+    if settings.n_step_max:
+        out["n_step_max"] = KStepMax.assumes
+    if settings.distance_floor:
+        out["distance_floor"] = DistanceFloor.assumes
+    if settings.distance_ceiling:
+        out["distance_ceiling"] = DistanceCeiling.assumes
+    if settings.model_targets:
+        out["model_targets"] = ModelTargets.assumes
+    if settings.optimistic_floor:
+        out["optimistic_floor"] = DistanceFloor.assumes | DistanceCeiling.assumes
+    if settings.bound_all_actions:
+        out["bound_all_actions"] = frozenset({"count_model", "deterministic"})
+    return out
+
+
+def resolve_bounds(settings, holds: frozenset[str], explicit: Sequence[str] = ()):
+    """The settings with every switch whose assumption the environment breaks turned off, and one line per switch
+    turned off. ``holds``: the assumptions the environment meets (:data:`MAZE` for a Keulen maze). ``explicit``:
+    the agent keys the user set on the command line; such a switch is refused (``ValueError``) instead."""
+    off, lines = {}, []
+    for key, needs in assumptions(settings).items():
+        broken = sorted(needs - holds)
+        if not broken:
+            continue
+        why = "; ".join(ASSUMPTIONS[b] for b in broken)
+        if key in explicit:
+            raise ValueError(f"agent.{key}=true: this environment breaks what it assumes ({why})")
+        off[key] = False
+        lines.append(f"agent.{key} turned off: this environment breaks what it assumes ({why})")
+    return dataclasses.replace(settings, **off), lines
+
+
+def make_td_target(settings, maze: Maze, counts, value_range: tuple[float, float] | None) -> TDTarget:
+    """The TD target that ``settings`` (a :class:`~ss_drl.agents.settings.DQNSettings`) names, on ``maze`` with its
+    count model ``counts`` (read only by the bounds that need it)."""
+    scale = Scale(float(settings.gamma), float(settings.step_cost))
+    if counts is None and any(getattr(settings, k) for k in COUNT_MODEL_KEYS):
+        raise ValueError("the count model's bounds need the count model (make_td_target(..., counts=...))")
+    bounds: list[Bound] = []
+    if settings.hindsight_bound:
+        bounds.append(HindsightBound(scale))
+    if settings.n_step_max:
+        bounds.append(KStepMax(scale, settings.n_step))
+    ceiling = None
+    if settings.distance_ceiling:
+        ceiling = DistanceCeiling(counts, maze.height, maze.width, maze.goal_cell, scale, settings.bound_all_actions)
+    if settings.distance_floor:
+        optimistic = ceiling if settings.optimistic_floor else None
+        bounds.append(DistanceFloor(counts, maze.goal_cell, scale, settings.bound_all_actions, optimistic))
+    if ceiling is not None:
+        bounds.append(ceiling)
+    model = ModelTargets(counts, scale) if settings.model_targets else None
+    return TDTarget(scale, bounds, model, value_range)
