@@ -8,7 +8,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from ss_drl.envs.maze import Maze, load_maze
+from ss_drl.envs.maze import Maze, goal_reward, load_maze
 
 #: Colours of the rgb_array rendering.
 COLORS = {
@@ -58,12 +58,12 @@ class MazeEnv(gym.Env):
     # --- GoalEnv interface -------------------------------------------------------------------------------------
     def compute_reward(self, achieved_goal, desired_goal, info) -> np.ndarray | float:
         """1.0 where the achieved (row, col) equals the desired one, else 0.0 (vectorized over leading axes)."""
-        hit = np.all(np.asarray(achieved_goal) == np.asarray(desired_goal), axis=-1)
+        hit = np.all(goal_reward(np.asarray(achieved_goal), np.asarray(desired_goal)), axis=-1)
         return hit.astype(np.float64) if hit.ndim else float(hit)
 
     def compute_terminated(self, achieved_goal, desired_goal, info) -> np.ndarray | bool:
         """True where the desired goal was reached (vectorized over leading axes)."""
-        hit = np.all(np.asarray(achieved_goal) == np.asarray(desired_goal), axis=-1)
+        hit = np.all(goal_reward(np.asarray(achieved_goal), np.asarray(desired_goal)), axis=-1)
         return hit if hit.ndim else bool(hit)
 
     def compute_truncated(self, achieved_goal, desired_goal, info) -> np.ndarray | bool:

@@ -85,6 +85,7 @@ SUMMARY_KEYS = (
     "env_steps_per_s",
     "updates_per_s",
     "smart_start_decisions",  # guided phases started (0 without Smart Start)
+    "bounds_in_force",  # the TD target's bounds that ran (ss_drl/agents/targets.py; [] for the tabular agent)
     "config",  # the resolved Hydra config
 )
 
