@@ -9,7 +9,9 @@ The rows, named by the stages of ``docs/ablations.md`` (the lab notebook is ``do
 * **dqn_bounded**: the model-bounded DQN as ``agent=dqn_bounded`` composes it (stage 20's LCFATO: the count model's
   distance floor and ceiling on every action, the model targets and the optimistic floor);
 * **dqn_bounded, TorchRL SoftUpdate**: the model-bounded DQN once more, its target network stepped by TorchRL's
-  ``SoftUpdate`` instead of ss-drl's ``PolyakUpdate`` (the same arithmetic; what the fused lerp saves).
+  ``SoftUpdate`` instead of ss-drl's ``PolyakUpdate`` (the same arithmetic; what the fused lerp saves);
+* **dqn_bounded, separate passes**: the model-bounded DQN with its model targets' successors bootstrapped in passes
+  of their own, as at 7ac5009 (``TDTarget(fused=False)``; what one batched pass per network saves).
 
 The learners' rows are composed from the ``agent`` group (:data:`LEARNERS`), so they follow ``conf/agent/*.yaml``;
 J is ``agent=dqn`` with each switch that is on there turned off. The "bounds on" column lists the switches on in the
@@ -35,6 +37,10 @@ LEARNERS = (("dqn", "dqn", "LM"), ("dqn_bounded", "dqn_bounded", "LCFATO"))
 REFERENCE = ("J", "J")
 #: The model-bounded DQN with its target network stepped by TorchRL's ``SoftUpdate``.
 SOFT_UPDATE = "dqn_bounded, TorchRL SoftUpdate"
+#: The model-bounded DQN with the model targets' successors in passes of their own (``TDTarget(fused=False)``).
+SEPARATE = "dqn_bounded, separate passes"
+#: The rows that re-time the model-bounded DQN with one part changed.
+VARIANTS = (SOFT_UPDATE, SEPARATE)
 
 
 def switches_on(settings) -> list[str]:
@@ -95,7 +101,8 @@ def bench_update(
     repeats: int, maze: str = "hard", transitions: int = 20_000, updates: int = 100, episode_len: int = 1000
 ) -> str:
     """ms per update of J and each of :data:`LEARNERS` on ``maze`` (median over repeats of the mean of ``updates``
-    updates), then the model-bounded DQN with TorchRL's ``SoftUpdate``, and each one's ratio to J's."""
+    updates), then the model-bounded DQN with TorchRL's ``SoftUpdate`` and with separate passes, and each one's
+    ratio to J's."""
     from torchrl.objectives import SoftUpdate
 
     from ss_drl.envs.maze import load_maze
@@ -107,7 +114,7 @@ def bench_update(
     settings = setting_overrides(maze)
     bounded = settings[-1]
     agents, stages = {}, {}
-    for name, stage, overrides in (*settings, (SOFT_UPDATE, bounded[1], bounded[2])):
+    for name, stage, overrides in (*settings, *((variant, bounded[1], bounded[2]) for variant in VARIANTS)):
         cfg = compose_config([f"+experiment={maze}_ss_her", *overrides])
         counts = CountModel(layout.n_cells)
         counts.update(data["observation"], data["action"], data["next", "observation"], data["next", "reward"])
@@ -115,6 +122,8 @@ def bench_update(
         agent = make_agent(cfg, layout, 0, counts)
         if name == SOFT_UPDATE:  # instead of ss-drl's PolyakUpdate (the same result)
             agent.target_updater = SoftUpdate(agent.loss, tau=agent.settings.tau)
+        if name == SEPARATE:  # the successors' bootstrap in passes of their own
+            agent.td_target.fused = False
         agent.store(data.clone())
         for _ in range(5):  # warm-up (and the ceiling's first BFS)
             agent.update()
@@ -131,7 +140,7 @@ def bench_update(
     rows = []
     for name, agent in agents.items():
         ms = median(times[name])
-        on = "as " + bounded[0] if name == SOFT_UPDATE else ", ".join(switches_on(agent.settings)) or "none"
+        on = "as " + bounded[0] if name in VARIANTS else ", ".join(switches_on(agent.settings)) or "none"
         rows.append([name, stages[name], on, fmt_ms(ms), f"{ms / base:.2f}x"])
     batch = agents[reference].settings.batch_size
     return "\n".join(

@@ -191,8 +191,9 @@ def _learner_settings(maze: str, group: str):
 
 def test_update_section_quick_times_the_stated_updates(monkeypatch):
     """The rows are J, each learner of ``update.LEARNERS`` as its ``agent`` group composes it, and the model-bounded
-    one again with TorchRL's SoftUpdate stepping its target network in place of ss-drl's PolyakUpdate. Each row is an
-    agent built with those settings and timed for the same number of updates (5 warm-up ones first); "bounds on"
+    one again with TorchRL's SoftUpdate stepping its target network in place of ss-drl's PolyakUpdate, and once with
+    its model targets' successors in passes of their own (``TDTarget(fused=False)``). Each row is an agent built
+    with those settings and timed for the same number of updates (5 warm-up ones first); "bounds on"
     lists the switches on in its settings; the ratios are the printed medians' quotients."""
     import dataclasses
 
@@ -204,7 +205,9 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
     real_update = DQNAgent.update
 
     def counted(self):
-        calls.append((self.settings, tuple(self.td_target.names), type(self.target_updater).__name__))
+        calls.append(
+            (self.settings, tuple(self.td_target.names), type(self.target_updater).__name__, self.td_target.fused)
+        )
         return real_update(self)
 
     monkeypatch.setattr(DQNAgent, "update", counted)
@@ -213,28 +216,29 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
     (rows,) = tables(text)
     groups = {name: group for name, group, _ in update.LEARNERS}
     assert set(groups.values()) == {"dqn", "dqn_bounded"}  # the two learners, each from its agent group
-    assert [row["setting"] for row in rows] == ["J", *groups, update.SOFT_UPDATE]
+    assert [row["setting"] for row in rows] == ["J", *groups, update.SOFT_UPDATE, update.SEPARATE]
     learners = {name: _learner_settings(sizes["maze"], group) for name, group in groups.items()}
     replay_only = next(learners[n] for n, g in groups.items() if g == "dqn")
     bounded_name = next(n for n, g in groups.items() if g == "dqn_bounded")
     assert set(assumptions(dataclasses.replace(replay_only, **dict.fromkeys(SWITCHES, True)))) == set(SWITCHES)
     reference = dataclasses.replace(replay_only, **dict.fromkeys(SWITCHES, False))  # J: no switch on
     expected = {
-        "J": (reference, "PolyakUpdate"),
-        **{name: (settings, "PolyakUpdate") for name, settings in learners.items()},
-        update.SOFT_UPDATE: (learners[bounded_name], "SoftUpdate"),
+        "J": (reference, "PolyakUpdate", True),
+        **{name: (settings, "PolyakUpdate", True) for name, settings in learners.items()},
+        update.SOFT_UPDATE: (learners[bounded_name], "SoftUpdate", True),
+        update.SEPARATE: (learners[bounded_name], "PolyakUpdate", False),
     }
     assert len(set(expected.values())) == len(rows)  # every row a distinct agent
     stages = {"J": update.REFERENCE[1], **{name: stage for name, _, stage in update.LEARNERS}}
-    stages[update.SOFT_UPDATE] = stages[bounded_name]
+    stages[update.SOFT_UPDATE] = stages[update.SEPARATE] = stages[bounded_name]
     names = {}
     for row in rows:
-        settings, updater = expected[row["setting"]]
-        mine = [call for call in calls if call[0] == settings and call[2] == updater]
+        settings, updater, fused = expected[row["setting"]]
+        mine = [call for call in calls if call[0] == settings and call[2] == updater and call[3] == fused]
         assert len(mine) == 5 + repeats * sizes["updates"], row
         names[row["setting"]] = mine[0][1]
         on = {key for key in SWITCHES if getattr(settings, key)}
-        if row["setting"] == update.SOFT_UPDATE:
+        if row["setting"] in update.VARIANTS:
             assert row["bounds on"] == f"as {bounded_name}"
         else:
             assert (set() if row["bounds on"] == "none" else set(row["bounds on"].split(", "))) == on

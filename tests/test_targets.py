@@ -11,6 +11,7 @@ import torch
 from helpers import compose_cfg
 from tensordict import TensorDict
 
+from ss_drl.agents.network import GoalQNetwork
 from ss_drl.agents.settings import DQNSettings
 from ss_drl.agents.targets import (
     MAZE,
@@ -287,29 +288,14 @@ def test_k_step_max_takes_the_largest_shorter_target_inside_the_window():
 V = torch.tensor([-30.0, -9.0, 0.0, 0.0, -2.0, -8.0, -9.0, 5.0])
 
 
-def test_the_composed_target_equals_the_hand_composed_clamp_where_every_bound_binds():
-    """Six samples on CORRIDOR with the count model above, each with a different bound deciding its target (value
-    range [-20, 0], shortest-path form, m-step windows of width 3, base target -m + V(s_{t+m}), +1 if entered):
-
-    0. goal 6, (4, right) -> 5, goal_steps 2: base -1 + V5 = -9; the hindsight bound -1 binds -> -1.
-    1. goal 7, (0, down), window 4 5 6 (m 3): base -3 + V6 = -12; k-step max: max(-1 + V4, -2 + V5) = -3 -> -3.
-    2. goal G, (0, right) -> 1: base -1 + V1 = -10; distance floor -4 (ceiling -2) -> -4.
-    3. goal G, (6, up) -> 7: base -1 + V7 = 4; distance ceiling -1 (no floor: untried) -> -1.
-    4. goal 5, (4, left) -> 7: base 4 -> the value range's 0.
-    5. goal 1, (5, left) -> 0: base -31 -> the value range's -20.
-
-    The other actions hold their prediction (-5 everywhere here) or, where the count model saw the action, its
-    one-step model target ``-1 + V(s')`` (0 on entering the goal), clamped into the all-action bounds for G:
-    0. (4): right -> 5: -9.                    3. (6): right -> 7 gives 4, floor and ceiling -1 -> -1; down
-    1. (0): right -> 1: -10; down -> 4: -3.       (off the grid) ceiling -2, left ceiling -2, up ceiling -1.
-    2. (0) for G: right -10 into [-4, -2] -> -4; 4. (4), goal 5: right enters it: 0.
-       down -3 into [-4, -4] -> -4; left and    5. (5): right -> 6: -10.
-       up ceiling -3 over -5."""
+def every_bound_binds(fused: bool = True) -> tuple[TDTarget, TensorDict]:
+    """The TD target with every bound and the model targets on CORRIDOR's count model above, and the six samples of
+    :func:`test_the_composed_target_equals_the_hand_composed_clamp_where_every_bound_binds`."""
     counts = corridor_counts()
     g = CORRIDOR.goal_cell
     ceiling = DistanceCeiling(counts, CORRIDOR.height, CORRIDOR.width, g, PATH, all_actions=True)
     bounds = [HindsightBound(PATH), KStepMax(PATH, 3), DistanceFloor(counts, g, PATH, all_actions=True), ceiling]
-    target = TDTarget(PATH, bounds, ModelTargets(counts, PATH), value_range=(-20.0, 0.0))
+    target = TDTarget(PATH, bounds, ModelTargets(counts, PATH), value_range=(-20.0, 0.0), fused=fused)
     goals = torch.tensor([6, 7, g, g, 5, 1])
     m = torch.tensor([[1], [3], [1], [1], [1], [1]])
     after = torch.tensor([5, 6, 1, 7, 7, 0])
@@ -333,6 +319,29 @@ def test_the_composed_target_equals_the_hand_composed_clamp_where_every_bound_bi
         ),
     )
 
+    return target, batch
+
+
+def test_the_composed_target_equals_the_hand_composed_clamp_where_every_bound_binds():
+    """Six samples on CORRIDOR with the count model above, each with a different bound deciding its target (value
+    range [-20, 0], shortest-path form, m-step windows of width 3, base target -m + V(s_{t+m}), +1 if entered):
+
+    0. goal 6, (4, right) -> 5, goal_steps 2: base -1 + V5 = -9; the hindsight bound -1 binds -> -1.
+    1. goal 7, (0, down), window 4 5 6 (m 3): base -3 + V6 = -12; k-step max: max(-1 + V4, -2 + V5) = -3 -> -3.
+    2. goal G, (0, right) -> 1: base -1 + V1 = -10; distance floor -4 (ceiling -2) -> -4.
+    3. goal G, (6, up) -> 7: base -1 + V7 = 4; distance ceiling -1 (no floor: untried) -> -1.
+    4. goal 5, (4, left) -> 7: base 4 -> the value range's 0.
+    5. goal 1, (5, left) -> 0: base -31 -> the value range's -20.
+
+    The other actions hold their prediction (-5 everywhere here) or, where the count model saw the action, its
+    one-step model target ``-1 + V(s')`` (0 on entering the goal), clamped into the all-action bounds for G:
+    0. (4): right -> 5: -9.                    3. (6): right -> 7 gives 4, floor and ceiling -1 -> -1; down
+    1. (0): right -> 1: -10; down -> 4: -3.       (off the grid) ceiling -2, left ceiling -2, up ceiling -1.
+    2. (0) for G: right -10 into [-4, -2] -> -4; 4. (4), goal 5: right enters it: 0.
+       down -3 into [-4, -4] -> -4; left and    5. (5): right -> 6: -10.
+       up ceiling -3 over -5."""
+    target, batch = every_bound_binds()
+
     def bootstrap(states, goals):
         return V[states].unsqueeze(-1)
 
@@ -348,6 +357,32 @@ def test_the_composed_target_equals_the_hand_composed_clamp_where_every_bound_bi
     ]
     assert held.tolist() == expected
     assert target.names == ["hindsight_bound", "n_step_max", "distance_floor", "distance_ceiling", "model_targets"]
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_fused_passes_give_the_separate_passes_targets(fused):
+    """One bootstrap call for every state (the window's end, the k-step maximum's states, the model targets'
+    successors) against two (the successors on their own, as at 7ac5009): the same targets and held values, to float
+    tolerance, on the samples where every bound binds, with a real network's double-DQN bootstrap; and the fused
+    target makes one call where the separate one makes two."""
+    torch.manual_seed(0)
+    online, target_net = GoalQNetwork(CORRIDOR, "hybrid", 8, (16, 16)), GoalQNetwork(CORRIDOR, "hybrid", 8, (16, 16))
+    calls = []
+
+    def bootstrap(states, goals):
+        calls.append(states.numel())
+        with torch.no_grad():
+            return target_net(states, goals).gather(-1, online(states, goals).argmax(-1, keepdim=True))
+
+    q_all = torch.randn(6, 4)
+    one, batch = every_bound_binds(fused)
+    other, _ = every_bound_binds(not fused)
+    calls.clear()
+    got = one(batch, q_all, bootstrap)
+    assert calls == ([6 * 3 + 6 * 4] if fused else [6 * 3, 6 * 4])
+    want = other(batch, q_all, bootstrap)
+    torch.testing.assert_close(got[0], want[0])
+    torch.testing.assert_close(got[1], want[1])
 
 
 def test_a_lower_and_an_upper_bound_that_cross_give_the_upper():

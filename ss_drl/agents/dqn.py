@@ -114,8 +114,7 @@ class GoalDQNLoss(LossModule):
         q_all = self.value_network(obs, goal)
         pred = q_all.gather(-1, action)
         with torch.no_grad():
-            target = self.td_target.taken(tensordict, self.bootstrap)
-            held = self.td_target.others(tensordict, q_all, self.bootstrap)
+            target, held = self.td_target(tensordict, q_all, self.bootstrap)
         loss = distance_loss(pred.squeeze(-1), target.squeeze(-1), self.loss_function).mean()
         if held is not None:  # every action but the taken one, against what the target holds it to
             others = torch.ones_like(held, dtype=torch.bool).scatter_(-1, action, False)

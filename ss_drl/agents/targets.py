@@ -381,13 +381,17 @@ class ModelTargets:
     def __init__(self, counts, scale: Scale):
         self.counts, self.scale = counts, scale
 
-    def __call__(self, sample: TensorDictBase, held: torch.Tensor, bootstrap: Bootstrap) -> torch.Tensor:
-        """(B, A) ``held`` with each action the count model has seen from s_t replaced by its one-step target."""
-        succ = self.counts.successors().view(-1, len(ACTIONS))[sample.get("observation")]  # -1: untried
-        goal = sample.get("desired_goal")
-        entered = goal_reward(succ, goal.reshape(-1, 1))
+    def successors(self, sample: TensorDictBase) -> torch.Tensor:
+        """(B, A) the successor the count model observed for each action of s_t; -1 for an untried one."""
+        return self.counts.successors().view(-1, len(ACTIONS))[sample.get("observation")]
+
+    def __call__(
+        self, sample: TensorDictBase, held: torch.Tensor, succ: torch.Tensor, values: torch.Tensor
+    ) -> torch.Tensor:
+        """(B, A) ``held`` with each action the count model has seen from s_t replaced by its one-step target;
+        ``values`` (B, A): the bootstrapped values of the successors ``succ``."""
+        entered = goal_reward(succ, sample.get("desired_goal").reshape(-1, 1))
         reward = learner_reward(entered.to(torch.float32), None, self.scale.gamma, self.scale.step_cost)
-        values = bootstrap(succ.clamp(min=0).flatten(), goal.repeat_interleave(held.shape[-1])).view(held.shape)
         target = reward + self.scale.gamma * (~entered).to(values.dtype) * values
         return torch.where(succ >= 0, target, held)
 
@@ -407,7 +411,14 @@ def _clamp(x: torch.Tensor, lowers: list, uppers: list) -> torch.Tensor:
 
 class TDTarget:
     """The base target, clamped between the largest lower and the smallest upper bound, then clipped to
-    ``value_range``; and what the other actions are held to (see the module's docstring)."""
+    ``value_range``; and what the other actions are held to (see the module's docstring).
+
+    Every state whose value the target bootstraps (the state after the window, the bounds' extra states, the model
+    targets' successors) goes through one call of the bootstrap, so one batched pass of the target network and one
+    of the online network (double DQN) per update. ``fused=False`` makes the model targets' successors a call of
+    their own, as before issue 49: the same numbers to float rounding (a matrix product's sums can round
+    differently with the batch's size), and exactly the arithmetic of 7ac5009.
+    """
 
     def __init__(
         self,
@@ -415,11 +426,13 @@ class TDTarget:
         bounds: Sequence[Bound] = (),
         model_targets: ModelTargets | None = None,
         value_range: tuple[float, float] | None = None,
+        fused: bool = True,
     ):
         self.scale = scale
         self.bounds = tuple(bounds)
         self.model_targets = model_targets
         self.value_range = value_range
+        self.fused = bool(fused)
         self.bounds_all_actions = any(getattr(b, "all_actions", False) for b in self.bounds)
 
     @property
@@ -427,56 +440,74 @@ class TDTarget:
         """The switches of the bounds in force, in the order they are listed."""
         return [b.key for b in self.bounds] + ([self.model_targets.key] if self.model_targets is not None else [])
 
+    @property
+    def holds_other_actions(self) -> bool:
+        return self.model_targets is not None or self.bounds_all_actions
+
     def learner_return(self, sample: TensorDictBase) -> torch.Tensor:
         """(B, 1) the learner's return over the sample's m-step window."""
         return learner_reward(
             sample.get(("next", "reward")), sample.get("n_steps"), self.scale.gamma, self.scale.step_cost
         )
 
-    def taken(self, sample: TensorDictBase, bootstrap: Bootstrap) -> torch.Tensor:
-        """(B, 1) the target of the taken action a_t."""
+    def __call__(
+        self, sample: TensorDictBase, q_all: torch.Tensor, bootstrap: Bootstrap
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``(target, held)``: (B, 1) the taken action's target, and (B, A) what every action of s_t is held to (the
+        taken one's entry unused), or None when nothing holds the other actions."""
         next_obs, next_goal = sample.get(("next", "observation")), sample.get(("next", "desired_goal"))
         extra = [(b, b.bootstrap_states(sample)) for b in self.bounds]
         extra = [(b, s) for b, s in extra if s is not None]
-        values = {}
-        if extra:  # one pass over the next states and every bound's extra states
-            states = torch.cat([next_obs.unsqueeze(1)] + [s for _, s in extra], dim=1)
-            out = bootstrap(states.flatten(), next_goal.unsqueeze(1).expand_as(states).flatten()).view(states.shape)
-            next_value, at = out[:, :1], 1
-            for b, s in extra:
-                values[id(b)] = out[:, at : at + s.shape[1]]
-                at += s.shape[1]
+        # (B, 1 + k): the state after the window, then each bound's extra states, all for the sample's goal.
+        states = torch.cat([next_obs.unsqueeze(1)] + [s for _, s in extra], dim=1)
+        goals = next_goal.unsqueeze(1).expand_as(states)
+        succ = None if self.model_targets is None else self.model_targets.successors(sample)
+        if succ is None:
+            values, succ_values = bootstrap(states.flatten(), goals.flatten()).view(states.shape), None
+        elif self.fused:
+            succ_goals = sample.get("desired_goal").unsqueeze(1).expand_as(succ)
+            out = bootstrap(
+                torch.cat((states.flatten(), succ.clamp(min=0).flatten())),
+                torch.cat((goals.flatten(), succ_goals.flatten())),
+            )
+            values, succ_values = out[: states.numel()].view(states.shape), out[states.numel() :].view(succ.shape)
         else:
-            next_value = bootstrap(next_obs, next_goal)
-        not_terminal = (~sample.get(("next", "terminated"))).to(next_value.dtype)
-        discount = self.scale.gamma ** sample.get("n_steps").to(next_value.dtype)  # gamma^m after m steps
-        target = self.learner_return(sample) + discount * not_terminal * next_value
-        lowers = [b.lower(sample, values.get(id(b))) for b in self.bounds]
-        uppers = [b.upper(sample) for b in self.bounds]
-        target = _clamp(target, lowers, uppers)
+            values = bootstrap(states.flatten(), goals.flatten()).view(states.shape)
+            succ_goals = sample.get("desired_goal").unsqueeze(1).expand_as(succ)
+            succ_values = bootstrap(succ.clamp(min=0).flatten(), succ_goals.flatten()).view(succ.shape)
+        at, extra_values = 1, {}
+        for b, s in extra:
+            extra_values[id(b)] = values[:, at : at + s.shape[1]]
+            at += s.shape[1]
+        # 1. The base target.
+        not_terminal = (~sample.get(("next", "terminated"))).to(values.dtype)
+        discount = self.scale.gamma ** sample.get("n_steps").to(values.dtype)  # gamma^m after m steps
+        target = self.learner_return(sample) + discount * not_terminal * values[:, :1]
+        # 2. Between the largest lower and the smallest upper bound, then the value range.
+        lowers = [b.lower(sample, extra_values.get(id(b))) for b in self.bounds]
+        target = _clamp(target, lowers, [b.upper(sample) for b in self.bounds])
         if self.value_range is not None:
             target = target.clamp(*self.value_range)
-        return target
-
-    @property
-    def holds_other_actions(self) -> bool:
-        return self.model_targets is not None or self.bounds_all_actions
-
-    def others(self, sample: TensorDictBase, q_all: torch.Tensor, bootstrap: Bootstrap) -> torch.Tensor | None:
-        """(B, A) what each action of s_t is held to (the taken one's entry is unused): its model target or its own
-        prediction ``q_all`` (detached), clamped into its all-action bounds and the value range; None when nothing
-        holds the other actions."""
         if not self.holds_other_actions:
-            return None
+            return target, None
+        # 3. The other actions: the model target or the prediction, into the all-action bounds and the value range.
         held = q_all.detach()
         if self.model_targets is not None:
-            held = self.model_targets(sample, held, bootstrap)
+            held = self.model_targets(sample, held, succ, succ_values)
         lowers = [b.lower_all(sample) for b in self.bounds]
-        uppers = [b.upper_all(sample) for b in self.bounds]
-        held = _clamp(held, lowers, uppers)
+        held = _clamp(held, lowers, [b.upper_all(sample) for b in self.bounds])
         if self.value_range is not None:
             held = held.clamp(*self.value_range)
-        return held
+        return target, held
+
+    def taken(self, sample: TensorDictBase, bootstrap: Bootstrap) -> torch.Tensor:
+        """(B, 1) the target of the taken action a_t (the first part of :meth:`__call__`)."""
+        n_actions = len(ACTIONS)
+        return self(sample, torch.zeros(sample.batch_size[0], n_actions), bootstrap)[0]
+
+    def others(self, sample: TensorDictBase, q_all: torch.Tensor, bootstrap: Bootstrap) -> torch.Tensor | None:
+        """(B, A) what each action of s_t is held to (the second part of :meth:`__call__`)."""
+        return self(sample, q_all, bootstrap)[1]
 
 
 # --- building the target from the settings ------------------------------------------------------------------------
@@ -519,9 +550,11 @@ def resolve_bounds(settings, holds: frozenset[str], explicit: Sequence[str] = ()
     return dataclasses.replace(settings, **off), lines
 
 
-def make_td_target(settings, maze: Maze, counts, value_range: tuple[float, float] | None) -> TDTarget:
+def make_td_target(
+    settings, maze: Maze, counts, value_range: tuple[float, float] | None, fused: bool = True
+) -> TDTarget:
     """The TD target that ``settings`` (a :class:`~ss_drl.agents.settings.DQNSettings`) names, on ``maze`` with its
-    count model ``counts`` (read only by the bounds that need it)."""
+    count model ``counts`` (read only by the bounds that need it); ``fused``: see :class:`TDTarget`."""
     scale = Scale(float(settings.gamma), float(settings.step_cost))
     if counts is None and any(getattr(settings, k) for k in COUNT_MODEL_KEYS):
         raise ValueError("the count model's bounds need the count model (make_td_target(..., counts=...))")
@@ -539,4 +572,4 @@ def make_td_target(settings, maze: Maze, counts, value_range: tuple[float, float
     if ceiling is not None:
         bounds.append(ceiling)
     model = ModelTargets(counts, scale) if settings.model_targets else None
-    return TDTarget(scale, bounds, model, value_range)
+    return TDTarget(scale, bounds, model, value_range, fused)
