@@ -358,3 +358,148 @@ def test_random_maze_text_round_trip(height, width, scale, seed):
     again = parse_maze(text)
     assert_same_maze(again, maze)
     assert again.to_text() == text
+
+
+# --- random mazes: the misleading placement (issue 49) -------------------------------------------------------------
+DOCS_MAZES = Path(__file__).resolve().parents[1] / "docs" / "mazes"
+
+#: The misleading mazes of docs/mazes/: file stem -> random_maze's keyword arguments (the call in docs/mazes/README.md).
+MISLEADING = {f"misleading{seed}": dict(height=23, width=23, scale=1, seed=seed) for seed in range(3)}
+
+
+def misleading_reference(walls: np.ndarray, start: tuple[int, int], radius: int) -> tuple[tuple[int, int], int]:
+    """The rule's G for ``start``, brute force: every free cell other than S within Manhattan ``radius``, its distance
+    by the reference BFS, the largest distance and, among ties, the first cell in row-major order."""
+    dist = bfs(walls, start)
+    best = None
+    for r, c in itertools.product(range(walls.shape[0]), range(walls.shape[1])):
+        if (r, c) == start or walls[r, c] or abs(r - start[0]) + abs(c - start[1]) > radius or dist[r, c] < 0:
+            continue
+        if best is None or dist[r, c] > best[1]:
+            best = ((r, c), int(dist[r, c]))
+    assert best is not None
+    return best
+
+
+def manhattan(a: tuple[int, int], b: tuple[int, int]) -> int:
+    return abs(a[0] - b[0]) + abs(a[1] - b[1])
+
+
+@pytest.mark.parametrize(
+    ("height", "width", "scale", "seed", "radius", "path_range"),
+    [
+        (23, 23, 1, 0, 6, (150, 250)),
+        (23, 23, 1, 1, 6, (150, 250)),
+        (23, 23, 1, 2, 6, (150, 250)),
+        (15, 13, 1, 3, 3, (20, 60)),
+        (15, 15, 1, 4, 4, (30, 100)),
+        (9, 11, 2, 5, 6, (30, 80)),
+    ],
+)
+def test_random_maze_misleading_placement(height, width, scale, seed, radius, path_range):
+    """The misleading placement of `random_maze`: G is within Manhattan distance `radius` of S, and farthest along the
+    path among such cells (ties: the first in row-major order); the path is within `path_range`; the walls are the
+    default placement's."""
+    maze = random_maze(
+        height, width, scale=scale, seed=seed, placement="misleading", radius=radius, path_range=path_range
+    )
+    assert not maze.walls[maze.start] and not maze.walls[maze.goal] and maze.start != maze.goal
+    assert manhattan(maze.start, maze.goal) <= radius
+    goal, length = misleading_reference(maze.walls, maze.start, radius)
+    assert maze.goal == goal
+    assert maze.shortest_path_length == length == bfs(maze.walls, maze.start)[maze.goal]
+    assert path_range[0] <= length <= path_range[1]
+    assert np.array_equal(maze.walls, random_maze(height, width, scale=scale, seed=seed).walls)
+    assert "placement=misleading" in maze.name
+
+
+@pytest.mark.parametrize("seed", [0, 7])
+def test_random_maze_misleading_is_deterministic(seed):
+    kwargs = dict(placement="misleading", radius=4, path_range=(25, 80))
+    a = random_maze(17, 17, seed=seed, **kwargs)
+    assert_same_maze(a, random_maze(17, 17, seed=seed, **kwargs))
+    assert_same_maze(parse_maze(a.to_text()), a)
+
+
+def test_random_maze_misleading_breaks_ties_by_lowest_index():
+    """A hand-made case for the tie rule: from S in the middle of an open 5x5 room, eight cells at Manhattan distance
+    2 tie at path length 2; the rule takes (0, 2), the first in row-major order."""
+    from ss_drl.envs.maze import _misleading_goal
+
+    room = Maze(walls=np.zeros((5, 5), dtype=bool), start=(2, 2), goal=(0, 0))
+    assert _misleading_goal(room, (2, 2), 2) == ((0, 2), 2)
+    assert misleading_reference(room.walls, (2, 2), 2) == ((0, 2), 2)
+
+
+def test_random_maze_default_placement_unchanged():
+    """The default is the longest placement, and the issue-12 file random200 is still what its call makes."""
+    for seed in (0, 1, 2):
+        assert_same_maze(random_maze(23, 23, seed=seed), random_maze(23, 23, seed=seed, placement="longest"))
+    maze = random_maze(23, 23, scale=1, seed=0)
+    assert maze.to_text() == (DOCS_MAZES / "random200.txt").read_text()
+    assert maze.shortest_path_length == 190 == diameter(maze.walls)
+    assert maze.name == "random(23x23,scale=1,seed=0)"
+
+
+def test_random_maze_misleading_refuses_when_no_start_works():
+    with pytest.raises(MazeError, match=r"no start among the \d+ free cells"):
+        random_maze(9, 9, seed=0, placement="misleading")  # paths of 150+ steps cannot fit in 41 free cells
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(placement="farthest"),
+        dict(placement="misleading", radius=0),
+        dict(placement="misleading", path_range=(0, 10)),
+        dict(placement="misleading", path_range=(20, 10)),
+        dict(placement="misleading", path_range=(10,)),
+    ],
+)
+def test_random_maze_misleading_bad_arguments(kwargs):
+    with pytest.raises(ValueError):
+        random_maze(11, 11, seed=0, **kwargs)
+
+
+def test_misleading_size_is_the_smallest_that_works_for_seeds_0_to_2():
+    """docs/mazes/README.md's size rule: 23 is the smallest odd n for which random_maze(n, n, placement="misleading")
+    finds an S for each of seeds 0-2."""
+    for n in range(3, 23, 2):
+        failed = False
+        for seed in range(3):
+            try:
+                random_maze(n, n, seed=seed, placement="misleading")
+            except MazeError:
+                failed = True
+                break
+        assert failed, n
+    for seed in range(3):
+        random_maze(23, 23, seed=seed, placement="misleading")
+
+
+@pytest.mark.parametrize("name", sorted(MISLEADING))
+def test_docs_misleading_mazes_are_their_calls(name):
+    """The files in docs/mazes/ are what their documented calls make, so they cannot drift from the rule."""
+    kwargs = MISLEADING[name]
+    maze = random_maze(**kwargs, placement="misleading")
+    path = DOCS_MAZES / f"{name}.txt"
+    assert path.read_text() == maze.to_text()
+    loaded = load_maze(path)
+    assert_same_maze(loaded, maze)
+    assert manhattan(loaded.start, loaded.goal) <= 6
+    assert 150 <= bfs(loaded.walls, loaded.start)[loaded.goal] <= 250
+    # The README documents exactly this call and this maze's figures.
+    readme = (DOCS_MAZES / "README.md").read_text()
+    call = 'random_maze({height}, {width}, scale={scale}, seed={seed}, placement="misleading")'.format(**kwargs)
+    row = next(line for line in readme.splitlines() if line.startswith(f"| {name} |"))
+    cells = [cell.strip() for cell in row.strip("|").split("|")]
+    assert cells == [
+        name,
+        f"`{call}`",
+        f"{loaded.height} x {loaded.width}",
+        str(loaded.start),
+        str(loaded.goal),
+        str(manhattan(loaded.start, loaded.goal)),
+        str(loaded.shortest_path_length),
+        f"`{name}.txt`",
+    ]

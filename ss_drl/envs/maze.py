@@ -191,25 +191,57 @@ def load_maze(path_or_preset: str | Path) -> Maze:
     return parse_maze(text, source=key)
 
 
-def random_maze(height: int, width: int, scale: int = 1, seed: int | None = None) -> Maze:
-    """A random perfect maze by a seeded recursive backtracker, with S and G far apart.
+#: ``random_maze``'s S/G placements: ``"longest"`` (S and G far apart) and ``"misleading"`` (G near S as the crow
+#: flies, far along the corridors).
+PLACEMENTS = ("longest", "misleading")
+
+
+def random_maze(
+    height: int,
+    width: int,
+    scale: int = 1,
+    seed: int | None = None,
+    *,
+    placement: str = "longest",
+    radius: int = 6,
+    path_range: tuple[int, int] = (150, 250),
+) -> Maze:
+    """A random perfect maze by a seeded recursive backtracker, with S and G placed by ``placement``.
 
     Args:
         height, width: size of the *layout* in cells before scaling (each layout cell is a room or a wall).
         scale: corridor width: each layout cell becomes a ``scale x scale`` block, as in Keulen's presets.
-        seed: RNG seed; the same seed gives the same maze.
+        seed: RNG seed; the same seed gives the same maze. The walls depend only on the seed (and the sizes), never
+            on ``placement``.
+        placement: ``"longest"`` (the default) or ``"misleading"``, below.
+        radius, path_range: the ``"misleading"`` placement's Manhattan radius and inclusive range of S-G path lengths
+            (ignored by ``"longest"``).
 
-    S and G come from two BFS sweeps of the final (scaled) grid: S is a free cell farthest from the top-left cell
-    (0, 0), which is always free, and G is a free cell farthest from S. For ``scale == 1`` the free cells form a
-    tree, on which two sweeps find the two ends of a longest shortest path exactly (the S-G distance is the maze's
-    diameter). For ``scale > 1`` the corridors are ``scale`` cells wide and the grid has cycles, so the sweeps carry
-    no such guarantee: G is a farthest cell from S, and the S-G distance is close to the diameter (equal to it on
-    the small mazes checked).
+    ``placement="longest"``: S and G come from two BFS sweeps of the final (scaled) grid: S is a free cell farthest
+    from the top-left cell (0, 0), which is always free, and G is a free cell farthest from S. For ``scale == 1``
+    the free cells form a tree, on which two sweeps find the two ends of a longest shortest path exactly (the S-G
+    distance is the maze's diameter). For ``scale > 1`` the corridors are ``scale`` cells wide and the grid has
+    cycles, so the sweeps carry no such guarantee: G is a farthest cell from S, and the S-G distance is close to the
+    diameter (equal to it on the small mazes checked).
+
+    ``placement="misleading"``: G lies near S as the crow flies but far from it along the corridors. After the walls,
+    the same RNG draws a random order of all free cells of the final grid (``rng.permutation`` of their flat indices,
+    ascending; so S is drawn again without repeats). For each S in that order, G is the free cell other than S within
+    Manhattan distance ``radius`` of S that is farthest from S by BFS along the maze (ties: the lowest flat index);
+    the first S whose S-G path length lies within ``path_range`` (inclusive) is kept. When no free cell qualifies,
+    :class:`MazeError` (a ``ValueError``) says so.
     """
     if height < 3 or width < 3:
         raise MazeError(f"random maze: height and width must be >= 3 (got {height}x{width})")
     if scale < 1:
         raise MazeError(f"random maze: scale must be >= 1 (got {scale})")
+    if placement not in PLACEMENTS:
+        raise MazeError(f"random maze: unknown placement {placement!r} (allowed: {', '.join(PLACEMENTS)})")
+    if placement == "misleading":
+        if radius < 1:
+            raise MazeError(f"random maze: radius must be >= 1 (got {radius})")
+        if len(path_range) != 2 or not 1 <= path_range[0] <= path_range[1]:
+            raise MazeError(f"random maze: path_range must be (low, high) with 1 <= low <= high (got {path_range})")
     rng = np.random.default_rng(seed)
     walls = np.ones((height, width), dtype=bool)
     rooms_r, rooms_c = (height + 1) // 2, (width + 1) // 2
@@ -234,10 +266,45 @@ def random_maze(height: int, width: int, scale: int = 1, seed: int | None = None
         stack.append((nr, nc))
     walls = np.kron(walls, np.ones((scale, scale), dtype=bool)).astype(bool)
     free = Maze(walls=walls, start=(0, 0), goal=(0, 0))
+    name = f"random({height}x{width},scale={scale},seed={seed})"
+    if placement == "misleading":
+        start, goal = _misleading_placement(free, rng, radius, (int(path_range[0]), int(path_range[1])))
+        return Maze(walls=walls, start=start, goal=goal, name=f"{name[:-1]},placement=misleading)")
     # Two BFS passes give (approximately, exactly on a tree) the two ends of the longest shortest path.
     a = np.unravel_index(np.argmax(free.distances_from((0, 0))), walls.shape)
     dist_a = free.distances_from(a)
     b = np.unravel_index(np.argmax(dist_a), walls.shape)
     start = (int(a[0]), int(a[1]))
     goal = (int(b[0]), int(b[1]))
-    return Maze(walls=walls, start=start, goal=goal, name=f"random({height}x{width},scale={scale},seed={seed})")
+    return Maze(walls=walls, start=start, goal=goal, name=name)
+
+
+def _misleading_goal(maze: Maze, start: tuple[int, int], radius: int) -> tuple[tuple[int, int], int] | None:
+    """The ``"misleading"`` placement's G for a given S: among the free cells other than ``start`` within Manhattan
+    distance ``radius`` of it, the one farthest from ``start`` along the maze (BFS by :meth:`Maze.distances_from`;
+    ties go to the lowest flat index). Returns (G, its path length), or None when no such cell is reachable."""
+    dist = maze.distances_from(start)
+    rows, cols = np.indices(dist.shape)
+    near = (np.abs(rows - start[0]) + np.abs(cols - start[1]) <= radius) & (dist > 0)
+    if not near.any():
+        return None
+    masked = np.where(near, dist, -1).ravel()
+    cell = int(np.argmax(masked))  # the first maximum: the lowest flat index among ties
+    return maze.pos(cell), int(masked[cell])
+
+
+def _misleading_placement(
+    maze: Maze, rng: np.random.Generator, radius: int, path_range: tuple[int, int]
+) -> tuple[tuple[int, int], tuple[int, int]]:
+    """S and G of ``random_maze``'s ``"misleading"`` placement on ``maze``'s walls, drawing S with ``rng``."""
+    lo, hi = path_range
+    free_cells = np.flatnonzero(~maze.walls.ravel())
+    for cell in rng.permutation(free_cells):
+        start = maze.pos(int(cell))
+        found = _misleading_goal(maze, start, radius)
+        if found is not None and lo <= found[1] <= hi:
+            return (int(start[0]), int(start[1])), (int(found[0][0]), int(found[0][1]))
+    raise MazeError(
+        f"random maze: no start among the {len(free_cells)} free cells has a goal within Manhattan distance {radius} "
+        f"whose path is {lo}-{hi} steps (try a larger maze or another path_range)"
+    )
