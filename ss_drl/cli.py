@@ -67,18 +67,15 @@ class ValidateBeforeRun(Callback):
 
 
 def _refuse_old_checkpoint(run_dir: Path) -> None:
-    """A checkpoint in ``run_dir`` written before the learners were renamed: :class:`ConfigError` (a cheap look: the
-    tensors are mapped, not read)."""
+    """The checkpoint a job in ``run_dir`` would continue from (``checkpoint.pt``, or ``checkpoint.prev.pt`` when
+    that one is damaged) written before the learners were renamed: :class:`ConfigError` (a cheap look: the tensors
+    are mapped, not read)."""
     from ss_drl.training import checkpoint as ckpt
 
-    path = run_dir / ckpt.CHECKPOINT_FILE
-    if not path.is_file():
-        return
     try:
-        state = ckpt.peek(run_dir)
-    except Exception:  # noqa: BLE001  (an unreadable checkpoint is the job's own failure, reported in its FAILED)
+        ckpt.resume_from(run_dir, mmap=True)
+    except (FileNotFoundError, ckpt.UnreadableCheckpoint):  # none, or none readable: the job's own failure (FAILED)
         return
-    ckpt.check_format(state, path)
 
 
 def _refuse_on(check, error: type[Exception]) -> None:

@@ -10,7 +10,7 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-from ss_drl.training.outputs import CHECKPOINT_FILE
+from ss_drl.training.outputs import CHECKPOINT_FILE, CHECKPOINT_PREV_FILE
 
 
 class OldCheckpoint(ValueError):
@@ -19,13 +19,22 @@ class OldCheckpoint(ValueError):
 
 def load_agent(run_dir: Path):
     """The trained agent and maze of a run directory, from its checkpoint; :class:`OldCheckpoint` when the checkpoint
-    is of another format (its config names options and learners that this version does not have)."""
+    is of another format (its config names options and learners that this version does not have), and
+    :class:`~ss_drl.training.checkpoint.UnreadableCheckpoint` when torch cannot read it (both one line). A damaged
+    checkpoint.pt is not passed over for checkpoint.prev.pt here: the run's final state is what is evaluated."""
     from ss_drl.smart_start import CountModel
     from ss_drl.training import checkpoint as ckpt
     from ss_drl.training.trainer import make_agent, make_maze
 
     path = Path(run_dir) / CHECKPOINT_FILE
-    state = ckpt.load(run_dir)
+    try:
+        state = ckpt.read(path)
+    except ckpt.UnreadableCheckpoint as exc:
+        if exc.damaged and (Path(run_dir) / CHECKPOINT_PREV_FILE).is_file():
+            raise ckpt.UnreadableCheckpoint(
+                f"{exc}; trainer.resume=true continues the run from {CHECKPOINT_PREV_FILE}", exc.damaged
+            ) from None
+        raise
     problem = ckpt.format_problem(state, path)
     if problem is not None:
         if ckpt.written_before_rename(state):
@@ -49,12 +58,13 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.run_dir / CHECKPOINT_FILE).is_file():
         print(f"evaluate.py: error: no {CHECKPOINT_FILE} in {args.run_dir}", file=sys.stderr)
         return 2
+    from ss_drl.training.checkpoint import UnreadableCheckpoint
     from ss_drl.training.figures import plot_policy
     from ss_drl.training.greedy import greedy_rollout
 
     try:
         agent, maze, cfg = load_agent(args.run_dir)
-    except OldCheckpoint as exc:
+    except (OldCheckpoint, UnreadableCheckpoint) as exc:
         print(f"evaluate.py: error: {exc}", file=sys.stderr)
         return 2
     optimal = maze.shortest_path_length

@@ -274,8 +274,10 @@ def test_diagnose_run_errors(tmp_path):
     with pytest.raises(DiagnoseError, match="bucket width must be >= 1"):
         diagnose_run(tmp_path, width=0)
     (tmp_path / "checkpoint.pt").write_text("not a checkpoint")
-    with pytest.raises(DiagnoseError, match="cannot load"):
+    with pytest.raises(DiagnoseError) as unreadable:
         diagnose_run(tmp_path)
+    unreadable_line = f"{tmp_path / 'checkpoint.pt'} cannot be read (UnpicklingError: invalid load key, 'n'.)"
+    assert str(unreadable.value) == unreadable_line
     # A checkpoint from before the learners were renamed (no format marker): one line saying so, not a schema error.
     torch.save({"config": {"method": "ss_her", "agent": {"name": "dqn", "lr_end": None}}}, tmp_path / "checkpoint.pt")
     with pytest.raises(DiagnoseError) as old:

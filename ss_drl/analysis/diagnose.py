@@ -340,6 +340,7 @@ def _summary(run_dir: Path) -> dict:
 def diagnose_run(run_dir: str | Path, width: int = 10) -> dict:
     """Points 1-4 for one run directory (its checkpoint.pt, train.csv, episodes.csv and summary.json)."""
     from ss_drl.evaluate import OldCheckpoint, load_agent
+    from ss_drl.training.checkpoint import UnreadableCheckpoint
 
     run_dir = Path(run_dir)
     if width < 1:
@@ -351,7 +352,7 @@ def diagnose_run(run_dir: str | Path, width: int = 10) -> dict:
     summary = _summary(run_dir)
     try:
         agent, maze, cfg = load_agent(run_dir)
-    except OldCheckpoint as e:
+    except (OldCheckpoint, UnreadableCheckpoint) as e:  # one line naming the file and the reason
         raise DiagnoseError(str(e)) from None
     except Exception as e:  # noqa: BLE001  (a broken checkpoint of any kind: one line naming the run)
         raise DiagnoseError(

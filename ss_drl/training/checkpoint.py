@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import os
 import random
 from pathlib import Path
@@ -12,7 +13,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 from ss_drl.training.config import ConfigError
-from ss_drl.training.outputs import CHECKPOINT_FILE, EPISODES_FILE, EVAL_FILE, SUMMARY_FILE
+from ss_drl.training.outputs import CHECKPOINT_FILE, CHECKPOINT_PREV_FILE, EPISODES_FILE, EVAL_FILE, SUMMARY_FILE
 
 #: Config sections that may differ between a run and its resumption (budgets, logging, the resume flag itself).
 RESUMABLE_CHANGES = ("trainer", "logger", "hydra")
@@ -27,28 +28,152 @@ FORMAT_KEY = "format"
 LAST_OLD_COMMIT = "7ac5009"
 
 
-def save(state: dict, run_dir: Path) -> Path:
-    """Write ``state`` to ``run_dir/checkpoint.pt`` through a temp file and a rename, so a kill never leaves half."""
-    path = Path(run_dir) / CHECKPOINT_FILE
+def save(state: dict, run_dir: Path, keep_previous: bool = True) -> Path:
+    """Write ``state`` to ``run_dir/checkpoint.pt``, keeping the checkpoint it replaces as ``checkpoint.prev.pt``
+    (when ``keep_previous``). Three steps, each atomic:
+
+    1. ``state`` goes to ``checkpoint.pt.tmp``, flushed to disk (fsync);
+    2. ``checkpoint.pt`` is renamed to ``checkpoint.prev.pt`` (replacing the one before it);
+    3. ``checkpoint.pt.tmp`` is renamed to ``checkpoint.pt``, and the directory is flushed.
+
+    A kill or a crash at any point leaves a whole, readable checkpoint: before step 2, ``checkpoint.pt`` as it was
+    (the temp file is never read); between steps 2 and 3, ``checkpoint.prev.pt`` (``checkpoint.pt`` is missing, and
+    :func:`resume_from` continues from the previous one); after step 3, both. The caller passes ``keep_previous``
+    false when ``checkpoint.pt`` is not known to be readable (a resume that fell back past it): step 2 is skipped, so
+    a damaged file never becomes ``checkpoint.prev.pt``, and the two files are never two copies of a damaged one."""
+    run_dir = Path(run_dir)
+    path = run_dir / CHECKPOINT_FILE
     tmp = path.with_suffix(".pt.tmp")
     torch.save(state, tmp)
+    _fsync(tmp)
+    if keep_previous and path.exists():
+        os.replace(path, run_dir / CHECKPOINT_PREV_FILE)
     os.replace(tmp, path)
+    _fsync(run_dir)
     return path
 
 
+def _fsync(path: Path) -> None:
+    """Flush a file's data, or a directory's entries (its renames), to disk (a no-op where the OS cannot)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:  # a directory on Windows
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+class UnreadableCheckpoint(ConfigError):
+    """A checkpoint file torch cannot read: ``str(err)`` is one line naming the file and the reason. ``damaged``:
+    the file is truncated or corrupt (what :func:`resume_from` falls back past), not one it cannot open or whose
+    pickle names code this version lacks (written by another version of ss-drl or of its libraries)."""
+
+    def __init__(self, message: str, damaged: bool = True):
+        super().__init__(message)
+        self.damaged = damaged
+
+
+#: What ``torch.load`` raises for a file that is whole but not for this code (a class or module it names is missing)
+#: or one it may not open: refused, never fallen back past (the file would be overwritten at the next checkpoint).
+NOT_DAMAGE = (ImportError, AttributeError, PermissionError, IsADirectoryError)
+
+
+def read(path: Path, mmap: bool = False) -> dict:
+    """The checkpoint in the file ``path``; ``mmap``: map the tensors' storage instead of reading it (a cheap look at
+    the format and the config; a file torch cannot map, e.g. of its legacy format, is read whole). Raises
+    :class:`UnreadableCheckpoint` (one line) when torch cannot read it: truncated, corrupt, or pickled by other code.
+    """
+    path = Path(path)
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False, mmap=mmap)
+    except Exception as exc:  # noqa: BLE001  (torch.load raises many kinds: pickle, zip, EOF, OS, Runtime errors)
+        error = exc
+    if mmap:
+        try:
+            return torch.load(path, map_location="cpu", weights_only=False)
+        except Exception as exc:  # noqa: BLE001  (the plain load raises the one to report)
+            error = exc
+    raise UnreadableCheckpoint(f"{path} cannot be read ({_reason(error)})", damaged=not isinstance(error, NOT_DAMAGE))
+
+
+def _reason(exc: Exception) -> str:
+    """``Type: message`` in one line: the message's first line, up to its first sentence's end (torch appends a
+    paragraph of advice to its zip reader's errors)."""
+    lines = str(exc).strip().splitlines()
+    message = lines[0].split(". ")[0] if lines else ""
+    return f"{type(exc).__name__}: {message}" if message else type(exc).__name__
+
+
 def load(run_dir: Path, mmap: bool = False) -> dict:
-    """The checkpoint of ``run_dir``; ``mmap``: map the tensors' storage instead of reading it (a cheap look at the
-    format and the config, before a run starts)."""
-    return torch.load(Path(run_dir) / CHECKPOINT_FILE, map_location="cpu", weights_only=False, mmap=mmap)
+    """The checkpoint of ``run_dir`` (its ``checkpoint.pt``; :func:`read`)."""
+    return read(Path(run_dir) / CHECKPOINT_FILE, mmap=mmap)
 
 
 def peek(run_dir: Path) -> dict:
-    """The checkpoint of ``run_dir`` with its tensors mapped, not read (read whole where torch cannot map the file,
-    e.g. one of its legacy format): a cheap look at the format and the config."""
+    """The checkpoint of ``run_dir`` with its tensors mapped, not read: a cheap look at the format and the config."""
+    return load(run_dir, mmap=True)
+
+
+@dataclasses.dataclass(frozen=True)
+class Resumption:
+    """The checkpoint a resumed run continues from (:func:`resume_from`)."""
+
+    path: Path  # checkpoint.pt, or checkpoint.prev.pt when checkpoint.pt is damaged or missing
+    state: dict
+    warning: str | None  # one line, when it is checkpoint.prev.pt: which file was passed over and why
+
+    @property
+    def fell_back(self) -> bool:
+        return self.warning is not None
+
+
+def resume_from(run_dir: Path, mmap: bool = False) -> Resumption:
+    """Which checkpoint of ``run_dir`` a resumed run continues from: the one function that decides, for the check
+    before anything is written (:func:`check_resume`, ``mmap``) and for the trainer (the full load).
+
+    ``checkpoint.pt`` when torch can read it and it is of this :data:`FORMAT`. When it is damaged (truncated or
+    corrupt: :attr:`UnreadableCheckpoint.damaged`) or missing (a save cut between its renames, :func:`save`),
+    ``checkpoint.prev.pt``, when that one is readable and of this format, with a one-line warning. Raises
+    :class:`ConfigError` (one line naming ``trainer.resume``): :class:`UnreadableCheckpoint` when no file can be
+    read, the format refusal of :func:`check_format` when the file chosen is of another format. A readable
+    ``checkpoint.pt`` of another format is refused, never passed over: it is the run's latest state, written by
+    another version, and continuing from the one before it would drop that version's progress and mix two versions.
+    ``FileNotFoundError`` when neither file exists."""
+    run_dir = Path(run_dir)
+    path, prev = run_dir / CHECKPOINT_FILE, run_dir / CHECKPOINT_PREV_FILE
+    if path.exists():
+        try:
+            state = read(path, mmap=mmap)
+        except UnreadableCheckpoint as exc:
+            if not exc.damaged or not prev.exists():
+                hint = "" if not exc.damaged else f"; there is no {prev.name} to fall back to"
+                raise UnreadableCheckpoint(f"trainer.resume: {exc}{hint}", exc.damaged) from None
+            problem = str(exc)
+        else:
+            check_format(state, path)
+            return Resumption(path, state, None)
+    elif prev.exists():
+        problem = f"{path} is missing"
+    else:
+        raise FileNotFoundError(f"trainer.resume: no checkpoint to resume at {path}")
     try:
-        return load(run_dir, mmap=True)
-    except Exception:  # noqa: BLE001  (torch.load raises many kinds; the plain load raises the one to report)
-        return load(run_dir)
+        state = read(prev, mmap=mmap)
+    except UnreadableCheckpoint as exc:
+        raise UnreadableCheckpoint(f"trainer.resume: {problem}, and {exc}", exc.damaged) from None
+    other = format_problem(state, prev)
+    if other is not None:
+        if written_before_rename(state):
+            other += f": continue it with a checkout of {LAST_OLD_COMMIT}, or start a new run"
+        raise ConfigError(f"trainer.resume: {problem}, and {other}")
+    collector = state.get("collector")
+    at = collector.get("env_steps") if isinstance(collector, dict) else None
+    where = "" if at is None else f" (env step {at})"
+    warning = f"trainer.resume: {problem}; continuing from {prev}{where}, the checkpoint before it"
+    return Resumption(prev, state, warning)
 
 
 def written_before_rename(state) -> bool:
@@ -80,22 +205,18 @@ def check_format(state, path: Path) -> None:
 def check_resume(cfg: DictConfig, run_dir: Path) -> None:
     """Before anything is written (:class:`~ss_drl.cli.ValidateBeforeRun`): a run that resumes must find a checkpoint
     in ``run_dir`` (``trainer.resume=true`` or a directory), readable, of this :data:`FORMAT`, and written with the
-    same config outside :data:`RESUMABLE_CHANGES`. Raises :class:`ConfigError` (one line) otherwise; the trainer
-    checks the same when it loads the checkpoint."""
+    same config outside :data:`RESUMABLE_CHANGES`: ``checkpoint.pt``, or ``checkpoint.prev.pt`` when that one is
+    damaged (:func:`resume_from`, which the trainer's load calls too, and which warns there). Raises
+    :class:`ConfigError` (one line) otherwise; the trainer checks the same when it loads the checkpoint."""
     try:
         if not should_resume(cfg, run_dir):
             return
+        resumption = resume_from(run_dir, mmap=True)
     except FileNotFoundError as exc:
         raise ConfigError(str(exc)) from None
-    path = Path(run_dir) / CHECKPOINT_FILE
-    try:
-        state = peek(run_dir)
-    except Exception as exc:  # noqa: BLE001  (torch.load raises many kinds on a file it cannot read)
-        message = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-        raise ConfigError(f"trainer.resume: {path} cannot be read ({type(exc).__name__}: {message})") from None
-    check_format(state, path)
+    state = resumption.state
     if "config" not in state:
-        raise ConfigError(f"trainer.resume: {path} holds no config; start the run anew")
+        raise ConfigError(f"trainer.resume: {resumption.path} holds no config; start the run anew")
     check_compatible(state["config"], task_config(cfg))
 
 
@@ -109,7 +230,7 @@ def task_config(cfg: DictConfig) -> dict:
 
 
 #: Files whose presence shows that a run was written in a directory (a new run there would delete them).
-RUN_FILES = (CHECKPOINT_FILE, SUMMARY_FILE, EPISODES_FILE, EVAL_FILE)
+RUN_FILES = (CHECKPOINT_FILE, CHECKPOINT_PREV_FILE, SUMMARY_FILE, EPISODES_FILE, EVAL_FILE)
 
 
 def resumes(resume) -> bool:
@@ -119,14 +240,17 @@ def resumes(resume) -> bool:
 
 def should_resume(cfg, run_dir: Path) -> bool:
     """Whether this run continues from a checkpoint in ``run_dir``: ``trainer.resume`` true or a path (the
-    checkpoint must exist), or ``auto`` (continue if there is one, else start the run)."""
+    checkpoint must exist), or ``auto`` (continue if there is one, else start the run). ``checkpoint.prev.pt``
+    counts: :func:`resume_from` continues from it when ``checkpoint.pt`` is missing (a save cut between its renames).
+    """
     resume = cfg.trainer.resume
     if not resumes(resume):
         return False
     path = Path(run_dir) / CHECKPOINT_FILE
+    found = path.exists() or (Path(run_dir) / CHECKPOINT_PREV_FILE).exists()
     if resume == "auto":
-        return path.exists()
-    if not path.exists():
+        return found
+    if not found:
         raise FileNotFoundError(f"trainer.resume: no checkpoint to resume at {path}")
     return True
 
@@ -144,7 +268,7 @@ def refuse_overwrite(cfg, run_dir: Path, key: str = "hydra.run.dir") -> None:
     held = run_files(run_dir)
     if not held:
         return
-    if resume == "auto" and SUMMARY_FILE in held and CHECKPOINT_FILE not in held:
+    if resume == "auto" and SUMMARY_FILE in held and CHECKPOINT_FILE not in held and CHECKPOINT_PREV_FILE not in held:
         raise ConfigError(
             f"{key}: {run_dir} holds a finished run ({', '.join(held)}) but no {CHECKPOINT_FILE} that "
             "trainer.resume=auto could continue; give another directory"

@@ -23,6 +23,7 @@ EVAL_FILE = "eval.csv"
 TRAIN_FILE = "train.csv"
 SUMMARY_FILE = "summary.json"
 CHECKPOINT_FILE = "checkpoint.pt"
+CHECKPOINT_PREV_FILE = "checkpoint.prev.pt"  # the checkpoint before checkpoint.pt (resume falls back to it)
 FAILED_FILE = "FAILED"  # written by a sweep job that failed (its message or traceback)
 
 EPISODE_COLUMNS = (

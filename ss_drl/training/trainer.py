@@ -40,7 +40,6 @@ from ss_drl.training.figures import plot_visit_counts
 from ss_drl.training.greedy import greedy_rollout
 from ss_drl.training.learned import EvalRecord, learned
 from ss_drl.training.outputs import (
-    CHECKPOINT_FILE,
     FAILED_FILE,
     SUMMARY_FILE,
     RunLogger,
@@ -71,6 +70,14 @@ class UpdateLog:
 
     def add(self, metrics: torch.Tensor) -> None:
         self.rows.append(metrics)
+
+    def state_dict(self) -> dict:
+        """The metrics held for the next row (kept in checkpoints: a resumed run's next row averages the same updates
+        as an uninterrupted run's)."""
+        return {"rows": list(self.rows), "first_update": self.first_update}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.rows, self.first_update = list(state["rows"]), state["first_update"]
 
     def check_finite(self, updates: int) -> torch.Tensor | None:
         """The held metrics as one (rows, metrics) tensor (one host sync; None if empty). A non-finite loss raises
@@ -109,11 +116,15 @@ def make_maze(env_cfg) -> Maze:
 
 def make_agent(cfg: DictConfig, maze: Maze, seed: int, counts: CountModel | None = None) -> Agent:
     """The learner named by ``agent.name``: ``dqn`` (with its HER replay buffer and its TD target, whose bounds read
-    ``counts``) or ``tabular``."""
+    ``counts``), ``tabular`` or ``frontier`` (the frontier explorer, a baseline that keeps its own memory)."""
     if cfg.agent.name == "tabular":
         from ss_drl.agents.tabular import TabularQAgent
 
         return TabularQAgent(cfg.agent, maze, seed=seed)
+    if cfg.agent.name == "frontier":
+        from ss_drl.agents.frontier import FrontierExplorer
+
+        return FrontierExplorer(cfg.agent, maze, seed=seed)
     from ss_drl.agents.dqn import DQNAgent, value_range
     from ss_drl.agents.targets import make_td_target
     from ss_drl.her import HindsightReplayBuffer
@@ -187,6 +198,10 @@ class Trainer:
         self.ss_targets: list[int] = []
         self._recent: deque[bool] = deque(maxlen=100)  # successes of the latest episodes, for the progress bar
         self.resolved = OmegaConf.to_container(cfg, resolve=True)
+        # Whether checkpoint.pt is known to be readable (this run wrote or loaded it): only then does a save keep it
+        # as checkpoint.prev.pt, so that a damaged file is never kept in place of a good one (ckpt.save).
+        self._keep_previous = True
+        self._held_updates: dict | None = None  # a checkpoint's UpdateLog, for train() to continue
         resume_rows = None
         if ckpt.should_resume(cfg, self.run_dir):
             resume_rows = self._restore()
@@ -200,18 +215,22 @@ class Trainer:
     def train(self) -> dict:
         cfg, agent, collector = self.cfg, self.agent, self.collector
         total = int(cfg.trainer.total_env_steps)
-        schedule = cfg.agent  # epsilon's schedule
+        schedule = cfg.agent if "eps_start" in cfg.agent else None  # epsilon's schedule (none: the frontier explorer)
         start = time.perf_counter()
         self.start_time = start - self.wall_before
         self.update_log = update_log = UpdateLog(agent.updates)
+        if self._held_updates is not None:  # a resumed run: the updates since the checkpoint's last train.csv row
+            update_log.load_state_dict(self._held_updates)
+            self._held_updates = None
         bar = progress_bar(total, initial=collector.env_steps)
         handlers = self._install_signal_handlers()
         try:
             while collector.env_steps < total:
                 # 1. Collect: guided phase (Smart Start) at episode starts, then epsilon-greedy.
-                agent.epsilon = linear_schedule(
-                    collector.env_steps, schedule.eps_start, schedule.eps_end, schedule.eps_decay_steps
-                )
+                if schedule is not None:
+                    agent.epsilon = linear_schedule(
+                        collector.env_steps, schedule.eps_start, schedule.eps_end, schedule.eps_decay_steps
+                    )
                 batch, finished = collector.rollout(max_frames=total - collector.env_steps)
                 # 2. Count model.
                 self.counts.update(
@@ -407,20 +426,29 @@ class Trainer:
             "recent": list(self._recent),
             "wall_s": time.perf_counter() - self.start_time,
             "rows": self.logger.rows,
+            "update_log": None if self.update_log is None else self.update_log.state_dict(),
             "rng": ckpt.rng_state(),
             "config": self.resolved,
         }
 
     def save_checkpoint(self) -> Path:
-        """An atomic checkpoint; never of a network whose loss went non-finite since the last train.csv row."""
+        """An atomic checkpoint, the one it replaces kept as checkpoint.prev.pt; never of a network whose loss went
+        non-finite since the last train.csv row."""
         if self.update_log is not None:
             self.update_log.check_finite(self.agent.updates)
         self.logger.flush()
-        return ckpt.save(self.state_dict(), self.run_dir)
+        path = ckpt.save(self.state_dict(), self.run_dir, keep_previous=self._keep_previous)
+        self._keep_previous = True
+        return path
 
     def _restore(self) -> tuple[int, ...]:
-        state = ckpt.load(self.run_dir)
-        ckpt.check_format(state, self.run_dir / CHECKPOINT_FILE)  # before anything else of it is read
+        # checkpoint.pt, or checkpoint.prev.pt when checkpoint.pt is damaged: the same choice as ckpt.check_resume's
+        # before the run started; of this format (checked before anything else of it is read).
+        resumption = ckpt.resume_from(self.run_dir)
+        if resumption.fell_back:
+            print(f"ss-drl: warning: {resumption.warning}", file=sys.stderr)
+            self._keep_previous = False  # checkpoint.pt is damaged: the next save replaces it, keeping prev
+        state = resumption.state
         if "evals" not in state:  # written before 844f19d: no evaluation list, and the old loop's collector state
             raise ValueError("trainer.resume: the checkpoint predates the list of evaluations; start the run anew")
         ckpt.check_compatible(state["config"], self.resolved)
@@ -438,6 +466,7 @@ class Trainer:
         self.ss_targets = list(state["ss_targets"])
         self._recent = deque(state["recent"], maxlen=100)
         self.wall_before = state["wall_s"]
+        self._held_updates = state.get("update_log")  # None in checkpoints written before it was kept
         ckpt.set_rng_state(state["rng"])
         return tuple(state["rows"])
 
