@@ -3,7 +3,8 @@ the other.
 
 ``dqn``, ``dqn_her``, ``ss``, ``ss_her``: the replay-only DQN without or with HER (``her.k > 0``) and Smart Start
 (``smart_start.eta > 0``); the suffix ``_bounded`` when any of the count model's bounds is on (the model-bounded
-DQN); ``tabular`` and ``tabular_ss`` for Keulen's tabular agent. Plots, tables, ``summary.json`` and W&B use it, and
+DQN); ``tabular`` and ``tabular_ss`` for Keulen's tabular agent; ``frontier`` for the frontier explorer (a baseline
+run without HER or Smart Start). Plots, tables, ``summary.json`` and W&B use it, and
 it labels run directories written before the learners were named (docs/migration.md) by what they ran.
 """
 
@@ -18,6 +19,8 @@ def method_label(config: Mapping) -> str:
     """The method a resolved config (a dict or DictConfig with ``agent``, ``her``, ``smart_start``) runs."""
     agent = config["agent"]
     smart_start = float(config["smart_start"]["eta"]) > 0
+    if agent["name"] == "frontier":
+        return "frontier"
     if agent["name"] == "tabular":
         return "tabular_ss" if smart_start else "tabular"
     her = int(config["her"]["k"]) > 0

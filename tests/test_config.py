@@ -23,7 +23,7 @@ BASE = "easy_small_dqn_her"  # a DQN experiment, so that the DQN-only rules (bat
 #: The deep methods: the replay-only DQN (``<method>``) and the model-bounded one (``<method>_bounded``).
 REPLAY_ONLY = ("dqn", "dqn_her", "ss", "ss_her")
 BOUNDED = tuple(f"{method}_bounded" for method in REPLAY_ONLY)
-METHODS = (*REPLAY_ONLY, *BOUNDED, "tabular", "tabular_ss")
+METHODS = (*REPLAY_ONLY, *BOUNDED, "tabular", "tabular_ss", "frontier")
 MAZES = ("easy", "medium", "hard", "extreme", "easy_small", "medium_small", "hard_small")
 #: Every switch of the DQN learner that reads the count model (those that make a learner the model-bounded one, and
 #: the two that only refine them).
@@ -67,8 +67,8 @@ def assert_config_error(cfg, key: str, value) -> str:
 
 # --- (a) every experiment composes and validates ---
 def test_experiments_found():
-    """Every ``<maze>_<method>`` exists for the 7 shipped mazes and the 10 methods, and nothing else."""
-    assert len(METHODS) == 10 and len(MAZES) == 7
+    """Every ``<maze>_<method>`` exists for the 7 shipped mazes and the 11 methods, and nothing else."""
+    assert len(METHODS) == 11 and len(MAZES) == 7
     assert EXPERIMENTS == sorted(f"{maze}_{method}" for maze in MAZES for method in METHODS)
 
 
@@ -97,14 +97,14 @@ def test_experiment_composes_and_validates(name):
     if base in ("ss", "ss_her", "tabular_ss"):
         assert cfg.smart_start.eta == 1
         assert cfg.smart_start.c_ss == pytest.approx(0.1)
-    if base in ("dqn", "dqn_her", "tabular"):
+    if base in ("dqn", "dqn_her", "tabular", "frontier"):
         assert cfg.smart_start.eta == 0
-    if base in ("dqn", "ss", "tabular", "tabular_ss"):
+    if base in ("dqn", "ss", "tabular", "tabular_ss", "frontier"):
         assert cfg.her.k == 0
     if base in ("dqn_her", "ss_her"):
         assert cfg.her.k > 0
         assert cfg.her.strategy == "future"
-    assert cfg.agent.name == ("tabular" if method.startswith("tabular") else "dqn")
+    assert cfg.agent.name == {"tabular": "tabular", "tabular_ss": "tabular", "frontier": "frontier"}.get(method, "dqn")
 
 
 def _settings(cfg) -> dict:
@@ -273,6 +273,37 @@ def test_gamma_out_of_range(gamma):
 @pytest.mark.parametrize("gamma", ["1.0", "1", "0.5"])
 def test_gamma_in_range(gamma):
     validate_config(compose_cfg(overrides=[f"agent.gamma={gamma}", "agent.step_cost=1"]))
+
+
+def test_the_frontier_explorer_has_only_its_own_keys():
+    """conf/agent/frontier.yaml has no epsilon and no learning rate: a key of another learner is refused, by name."""
+    validate_config(compose_cfg("easy_small_frontier"))
+    for key, value in (("eps_start", "0.1"), ("alpha", "0.1")):
+        message = assert_config_error(
+            compose_cfg("easy_small_frontier", [f"++agent.{key}={value}"]), f"agent.{key}", key
+        )
+        assert "name, gamma" in message
+
+
+def test_the_frontier_explorer_needs_gamma_below_1():
+    message = assert_config_error(compose_cfg("easy_small_frontier", ["agent.gamma=1"]), "agent.gamma", "1")
+    assert "(0, 1)" in message
+    validate_config(compose_cfg("easy_small_frontier", ["agent.gamma=0.9"]))
+
+
+@pytest.mark.parametrize(
+    ("override", "key", "value"),
+    [
+        ("smart_start=on", "smart_start.eta", "1.0"),
+        ("her.k=4", "her.k", "4"),
+        ("trainer.frames_per_batch=16", "trainer.frames_per_batch", "16"),
+    ],
+)
+def test_the_frontier_explorer_runs_alone_and_sees_every_move(override, key, value):
+    """No Smart Start and no HER (the label ``frontier`` would hide them), and at most one step per batch (its memory
+    must hold each move before it picks the next)."""
+    assert_config_error(compose_cfg("easy_small_frontier", [override]), key, value)
+    validate_config(compose_cfg("easy_small_frontier", ["env.num_envs=4", "trainer.frames_per_batch=4"]))
 
 
 def test_undiscounted_needs_a_step_cost():

@@ -1,6 +1,7 @@
-"""Learners: the goal-conditioned DQN (:mod:`.dqn`) and Keulen's tabular Q-learning baseline (:mod:`.tabular`).
+"""Learners: the goal-conditioned DQN (:mod:`.dqn`), Keulen's tabular Q-learning baseline (:mod:`.tabular`) and the
+frontier explorer (:mod:`.frontier`), a perfect-memory baseline for exploration.
 
-Both follow :class:`Agent`, the interface the training loop uses: act, store, update.
+All follow :class:`Agent`, the interface the training loop uses: act, store, update.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ class Agent(Protocol):
     batch, then runs :meth:`updates_due` calls of :meth:`update`.
     """
 
-    epsilon: float  # exploration rate of :meth:`act`, set by the loop's schedule
+    epsilon: float  # exploration rate of :meth:`act`, set by the loop's schedule (``agent.eps_*``) where it has one
     updates: int  # learning updates so far
 
     def act(self, observation: torch.Tensor, desired_goal: torch.Tensor) -> torch.Tensor:

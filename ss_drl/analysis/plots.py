@@ -89,8 +89,13 @@ def curve_figure(
 
 def learning_figure(maze: str, by_method: dict[str, list[Run]], colors: dict[str, tuple]) -> Figure | None:
     """TD loss and mean Q of the sampled batches over env steps (train.csv): each seed thin, the mean over seeds
-    (:func:`~ss_drl.analysis.aggregate.mean_over_seeds`) bold. None when no run has a train.csv."""
-    logs = {method: [log for log in map(load_train_log, runs) if log is not None] for method, runs in by_method.items()}
+    (:func:`~ss_drl.analysis.aggregate.mean_over_seeds`) bold. None when no run has a row in train.csv (the frontier
+    explorer has no learning update: its train.csv holds the header only)."""
+    logs = {
+        method: [log for log in map(load_train_log, runs) if log is not None and len(log["env_steps"])]
+        for method, runs in by_method.items()
+    }
+    logs = {method: method_logs for method, method_logs in logs.items() if method_logs}
     if not any(logs.values()):
         return None
     fig = _new_figure(figsize=(7.0, 6.0))

@@ -78,6 +78,28 @@ def _command_line_keys(cfg: DictConfig, prefix: str) -> list[str]:
     return [k[len(prefix) :] for k in keys if k.startswith(prefix)]
 
 
+#: The frontier explorer's settings (conf/agent/frontier.yaml): it has no epsilon and no learning rate.
+FRONTIER_KEYS = ("name", "gamma")
+
+
+def _frontier_run(cfg: DictConfig) -> None:
+    """The frontier explorer runs alone, and sees each transition before its next move."""
+    if cfg.smart_start.eta > 0:
+        raise ConfigError(
+            f"smart_start.eta: {cfg.smart_start.eta!r} is out of range for the frontier explorer (allowed: 0; it "
+            "chooses its own route to the frontier)"
+        )
+    if cfg.her.k > 0:
+        raise ConfigError(
+            f"her.k: {cfg.her.k!r} is out of range for the frontier explorer (allowed: 0; it has no replay)"
+        )
+    if cfg.trainer.frames_per_batch > cfg.env.num_envs:
+        raise ConfigError(
+            f"trainer.frames_per_batch: {cfg.trainer.frames_per_batch!r} is out of range for the frontier explorer "
+            f"(allowed: <= env.num_envs = {cfg.env.num_envs}: its memory must hold each move before it picks the next)"
+        )
+
+
 def validate_config(cfg: DictConfig) -> None:
     """Check every value a run uses; raise :class:`ConfigError` on the first bad one."""
     _number(cfg, "seed", low=0, integer=True)
@@ -108,14 +130,22 @@ def validate_config(cfg: DictConfig) -> None:
     if not isinstance(resume, (bool, str)) and resume is not None:
         raise ConfigError(f"trainer.resume: expected true, false, auto or a run directory, got {resume!r}")
     # agent
-    name = _choice(cfg, "agent.name", ("dqn", "tabular"))
-    _number(cfg, "agent.gamma", low=0, high=1, low_open=True)
-    _number(cfg, "agent.eps_start", low=0, high=1)
-    _number(cfg, "agent.eps_end", low=0, high=1)
-    _number(cfg, "agent.eps_decay_steps", low=1, integer=True)
+    name = _choice(cfg, "agent.name", ("dqn", "tabular", "frontier"))
+    # The frontier explorer's values gamma^steps must fall with the steps to the goal: gamma 1 is refused for it.
+    _number(cfg, "agent.gamma", low=0, high=1, low_open=True, high_open=name == "frontier")
+    if name == "frontier":  # no epsilon; HER, Smart Start and the batch are checked with the rest (_frontier_run)
+        unknown = sorted(set(cfg.agent) - set(FRONTIER_KEYS))
+        if unknown:
+            raise ConfigError(
+                f"agent.{unknown[0]}: not a setting of the frontier explorer (its keys: {', '.join(FRONTIER_KEYS)})"
+            )
+    else:
+        _number(cfg, "agent.eps_start", low=0, high=1)
+        _number(cfg, "agent.eps_end", low=0, high=1)
+        _number(cfg, "agent.eps_decay_steps", low=1, integer=True)
     if name == "tabular":
         _number(cfg, "agent.alpha", low=0, high=1, low_open=True)
-    else:
+    elif name == "dqn":
         # Types, choices and unknown keys: the typed settings' schema. Ranges and combinations: here.
         try:
             settings = DQNSettings.from_config(cfg.agent)
@@ -157,6 +187,8 @@ def validate_config(cfg: DictConfig) -> None:
     _number(cfg, "smart_start.gamma", low=0, high=1, low_open=True, high_open=True)
     _number(cfg, "smart_start.tol", low=0, low_open=True)
     _number(cfg, "smart_start.max_sweeps", low=1, integer=True)
+    if name == "frontier":
+        _frontier_run(cfg)
     # logger
     _choice(cfg, "logger.backend", ("csv", "wandb"))
     _choice(cfg, "logger.mode", ("offline", "online", "disabled"))
