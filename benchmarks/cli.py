@@ -9,6 +9,7 @@ import shlex
 import sys
 import time
 from collections.abc import Sequence
+from pathlib import Path
 
 import torch
 
@@ -23,6 +24,8 @@ SECTIONS = ("env", "train", "planner", "her", "update")
 #: Default repeats per section (``--repeats`` overrides them all). The train section is the slow one.
 DEFAULT_REPEATS = {"env": 5, "train": 3, "planner": 15, "her": 5, "update": 7}
 QUICK_REPEATS = 2
+#: The experiment the train section times without ``--experiment``.
+DEFAULT_EXPERIMENT = "easy_dqn_her"
 #: ``--quick``: every section at small sizes (keyword arguments of its ``bench_*`` function), a smoke run.
 QUICK_SIZES: dict[str, dict] = {
     "env": dict(raw_steps=2_000, gym_steps=500, batched_iters=200),
@@ -67,7 +70,25 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="timed env steps after learning_starts in the train section (default 1500; --quick 200)",
     )
+    parser.add_argument(
+        "--experiment",
+        default=None,
+        help="the experiment the train section times (default easy_dqn_her, with easy_ss_her for information); "
+        "compared with SB3 when it is a replay-only dqn_her",
+    )
+    parser.add_argument(
+        "--baseline-checkout",
+        default=None,
+        metavar="PATH",
+        help="a git checkout of an older commit (e.g. `git worktree add ../base 7ac5009`): the train section runs the "
+        "experiment there too, named as there (docs/migration.md), interleaved with this checkout's runs",
+    )
     return parser
+
+
+def command_line(argv: Sequence[str], prog: str) -> str:
+    """The command as typed: ``python PROG ARGS``, shell-quoted."""
+    return "python " + " ".join(shlex.quote(part) for part in (prog, *argv))
 
 
 def header(argv: Sequence[str], prog: str) -> str:
@@ -76,12 +97,12 @@ def header(argv: Sequence[str], prog: str) -> str:
     import torchrl
 
     sb3 = sb3_version() if sb3_available() else "not installed"
-    command = " ".join(shlex.quote(part) for part in (prog, *argv))
+    command = command_line(argv, prog)
     return "\n".join(
         [
             "# ss-drl benchmark",
             "",
-            f"`$ python {command}`",
+            f"`$ {command}`",
             "",
             f"python {platform.python_version()}, torch {torch.__version__} (threads {torch.get_num_threads()}), "
             f"torchrl {torchrl.__version__}, tensordict {tensordict.__version__}, gymnasium {gymnasium.__version__}, "
@@ -93,7 +114,7 @@ def header(argv: Sequence[str], prog: str) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``scripts/benchmark.py``; returns the exit code (0)."""
+    """Entry point of ``scripts/benchmark.py``; returns the exit code (0; 2 for an experiment with no baseline)."""
     if argv is None:
         prog, argv = sys.argv[0], sys.argv[1:]
     else:
@@ -107,15 +128,35 @@ def main(argv: Sequence[str] | None = None) -> int:
     ):
         if value is not None and value < 1:
             parser.error(f"{option} must be >= 1, got {value}")
+    sections = SECTIONS if args.section == "all" else (args.section,)
+    train_options = {}
+    if args.experiment is not None:
+        train_options["experiments"] = (args.experiment,)
+    if args.baseline_checkout is not None:
+        if "train" not in sections:
+            parser.error("--baseline-checkout applies to the train section")
+        if not (Path(args.baseline_checkout) / "scripts" / "train.py").is_file():
+            parser.error(
+                f"--baseline-checkout: {args.baseline_checkout} has no scripts/train.py (not an ss-drl checkout)"
+            )
+        from benchmarks.train import baseline_invocation
+
+        try:
+            baseline_invocation(args.experiment or DEFAULT_EXPERIMENT)
+        except ValueError as exc:  # refused in one line, before any run
+            print(f"scripts/benchmark.py: --baseline-checkout: {exc}", file=sys.stderr)
+            return 2
+        train_options["baseline_checkout"] = args.baseline_checkout
     quiet_torchrl()
     torch.set_num_threads(args.threads)
-    sections = SECTIONS if args.section == "all" else (args.section,)
     print(header(argv, prog), flush=True)
     for section in sections:
         repeats = args.repeats or (QUICK_REPEATS if args.quick else DEFAULT_REPEATS[section])
         sizes = dict(QUICK_SIZES[section]) if args.quick else {}
-        if section == "train" and args.train_steps is not None:
-            sizes["steps"] = args.train_steps
+        if section == "train":
+            if args.train_steps is not None:
+                sizes["steps"] = args.train_steps
+            sizes.update(train_options, command=command_line(argv, prog))
         start = time.perf_counter()
         text = BENCHES[section](repeats, **sizes)
         print(text, flush=True)

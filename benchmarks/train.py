@@ -1,22 +1,29 @@
-"""The ``train`` section: training throughput (env steps/s, updates included) on Easy of ss-drl against
-Stable-Baselines3 ``DQN`` + ``HerReplayBuffer`` with the same network width, batch size, buffer size,
-learning_starts, update-to-data ratio, target-network update and HER setting, run one after the other in this
-process, and the eager-PyTorch ceiling (:func:`run_bare_update`). Only the training phase is timed (from
-learning_starts on); the whole-run rate is shown too. Stable-Baselines3 is optional (the ``bench`` extra): without
-it the SB3 rows are left out with a note.
+"""The ``train`` section: training throughput (env steps/s, updates included) of one experiment (``--experiment``,
+default ``easy_dqn_her``) against Stable-Baselines3 ``DQN`` + ``HerReplayBuffer`` with the same network width, batch
+size, buffer size, learning_starts, update-to-data ratio, target-network update and HER setting, against an older
+checkout of ss-drl (``--baseline-checkout``, names mapped by docs/migration.md: :func:`baseline_invocation`), and
+against the eager-PyTorch ceiling (:func:`run_bare_update`). Only the training phase is timed (from learning_starts
+on, from each run's own train.csv); the whole-run rate is shown too. Each ss-drl run, this checkout's and the
+baseline's alike, is a subprocess ``python scripts/train.py`` of its checkout. Stable-Baselines3 is optional (the
+``bench`` extra): without it the SB3 rows are left out with a note.
 
-The ss-drl run compared is ``easy_dqn_her``: the replay-only DQN (``agent=dqn``) with HER, which learns from its
-replay buffer alone, as SB3's DQN does. SB3 has no counterpart of the count model's bounds, so the model-bounded
-learner (``easy_dqn_her_bounded``, which at 7ac5009 was ``easy_dqn_her``) is not the like-for-like comparison and
-is not run. A second row runs ``easy_dqn_her`` in SB3's form (:func:`sb3_form`): SB3's plain one-step DQN target
-with its Huber loss, no dueling head and none of the replay-only DQN's bounds (its k-step maximum costs network
-passes SB3 never makes), so that the two libraries do the same arithmetic per update. ``easy_ss_her`` (Smart Start
-on) is timed for information.
+The default ss-drl run compared with SB3 is ``easy_dqn_her``: the replay-only DQN (``agent=dqn``) with HER, which
+learns from its replay buffer alone, as SB3's DQN does. SB3 has no counterpart of the count model's bounds, so the
+model-bounded learner (``easy_dqn_her_bounded``, which at 7ac5009 was ``easy_dqn_her``) is not the like-for-like
+comparison: for it, and any experiment but a replay-only ``dqn_her``, the SB3 rows are skipped with a note. A second
+row runs the experiment in SB3's form (:func:`sb3_form`): SB3's plain one-step DQN target with its Huber loss, no
+dueling head and none of the replay-only DQN's bounds (its k-step maximum costs network passes SB3 never makes), so
+that the two libraries do the same arithmetic per update. By default ``easy_ss_her`` (Smart Start on) is timed for
+information.
 """
 
 from __future__ import annotations
 
 import csv
+import json
+import os
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Sequence
@@ -25,6 +32,9 @@ from pathlib import Path
 import torch
 
 from benchmarks.common import compose_config, fmt_rate, markdown_table, median
+
+#: This checkout: the repository root that holds ``benchmarks/``, ``scripts/`` and ``ss_drl/``.
+ROOT = Path(__file__).resolve().parent.parent
 
 #: Updates between train.csv rows in the benchmark runs: the rows time the training phase.
 LOG_INTERVAL = 10
@@ -96,14 +106,32 @@ def _train_overrides(experiment: str, steps: int, learning_starts: int, max_step
 
 
 def run_ssdrl(
-    experiment: str, steps: int, learning_starts: int, max_steps: int, seed: int = 0, overrides: Sequence[str] = ()
+    experiment: str,
+    steps: int,
+    learning_starts: int,
+    max_steps: int,
+    seed: int = 0,
+    overrides: Sequence[str] = (),
+    checkout: str | Path = ROOT,
 ) -> dict:
-    """One ss-drl training run; its training-phase and whole-run rates."""
-    from ss_drl.training.trainer import Trainer
+    """One ss-drl training run of ``checkout``'s code (this checkout by default); its training-phase and whole-run
+    rates.
 
-    cfg = compose_config(_train_overrides(experiment, steps, learning_starts, max_steps, seed) + list(overrides))
-    with tempfile.TemporaryDirectory(prefix="ssdrl-bench-") as run_dir:
-        summary = Trainer(cfg, run_dir).train()
+    Every run, this checkout's and a baseline checkout's alike, is a subprocess ``python scripts/train.py`` with
+    ``cwd`` and ``PYTHONPATH`` the checkout (so that its own ``ss_drl`` and ``conf/`` are used), the same overrides
+    and ``hydra.run.dir`` under a temporary directory: both sides pay the same start-up, which the train-phase window
+    (:func:`train_phase_window`, from the run's own train.csv) leaves out anyway."""
+    checkout = Path(checkout).resolve()
+    args = _train_overrides(experiment, steps, learning_starts, max_steps, seed) + list(overrides)
+    env = dict(os.environ, PYTHONPATH=str(checkout))
+    with tempfile.TemporaryDirectory(prefix="ssdrl-bench-") as tmp:
+        run_dir = Path(tmp) / "run"
+        command = [sys.executable, "scripts/train.py", *args, f"hydra.run.dir={run_dir}"]
+        proc = subprocess.run(command, cwd=checkout, env=env, capture_output=True, text=True)
+        if proc.returncode != 0:
+            tail = "\n".join((proc.stderr or proc.stdout).strip().splitlines()[-15:])
+            raise RuntimeError(f"training run failed in {checkout}: {' '.join(args)}\n{tail}")
+        summary = json.loads((run_dir / "summary.json").read_text())
         seconds, env_steps, updates = train_phase_window(run_dir)
     return {
         "steps_per_s": env_steps / seconds,
@@ -111,8 +139,62 @@ def run_ssdrl(
         "timed_steps": env_steps,
         "updates": updates,
         "whole_steps_per_s": summary["env_steps_per_s"],
-        "decisions": summary["smart_start_decisions"],
+        "decisions": summary.get("smart_start_decisions", 0),
     }
+
+
+#: The replay-only DQN (setting LM) in 7ac5009's terms: docs/migration.md's table.
+LM_OVERRIDES = (
+    "agent.n_step_max=true",
+    "agent.distance_ceiling=false",
+    "agent.distance_floor=false",
+    "agent.bound_all_actions=false",
+    "agent.model_targets=false",
+    "agent.optimistic_floor=false",
+)
+DEEP_METHODS = ("dqn_her", "ss_her", "dqn", "ss")  # longest suffix first
+TABULAR_METHODS = ("tabular_ss", "tabular")
+
+
+def baseline_invocation(experiment: str) -> tuple[str, list[str]]:
+    """Today's ``+experiment=NAME`` as 7ac5009 ran it (docs/migration.md): ``(experiment there, overrides)``.
+
+    ``<maze>_<method>_bounded`` is 7ac5009's ``<maze>_<method>`` (LCFATO, its shared setting); the replay-only
+    ``<maze>_<method>`` is 7ac5009's ``<maze>_<method>`` with :data:`LM_OVERRIDES`; the tabular experiments are
+    unchanged. Raises ValueError (one line) for an experiment 7ac5009 has no counterpart of (``<maze>_frontier``)."""
+    for method in DEEP_METHODS:
+        if experiment.endswith(f"_{method}_bounded"):
+            return experiment[: -len("_bounded")], []
+    for method in TABULAR_METHODS:
+        if experiment.endswith(f"_{method}"):
+            return experiment, []
+    for method in DEEP_METHODS:
+        if experiment.endswith(f"_{method}"):
+            return experiment, list(LM_OVERRIDES)
+    if experiment.endswith("_frontier"):
+        raise ValueError(f"{experiment}: the frontier explorer is new since 7ac5009, so it has no baseline to run")
+    raise ValueError(f"{experiment}: not in docs/migration.md's table, so it has no baseline to run")
+
+
+def checkout_commit(checkout: str | Path) -> str:
+    """The short commit of a git checkout (``?`` if git cannot tell)."""
+    proc = subprocess.run(["git", "-C", str(checkout), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    return proc.stdout.strip() or "?"
+
+
+def checkout_package(checkout: str | Path) -> str:
+    """Where ``import ss_drl`` resolves from, run as :func:`run_ssdrl` runs a checkout; raises ValueError if it is not
+    the checkout's own package (an installed ss-drl shadowing it)."""
+    checkout = Path(checkout).resolve()
+    env = dict(os.environ, PYTHONPATH=str(checkout))
+    proc = subprocess.run(
+        [sys.executable, "-c", "import ss_drl; print(ss_drl.__file__)"],
+        cwd=checkout, env=env, capture_output=True, text=True,
+    )  # fmt: skip
+    path = Path(proc.stdout.strip() or "?")
+    if proc.returncode != 0 or not path.resolve().is_relative_to(checkout):
+        raise ValueError(f"{checkout}: its ss_drl is not what runs there (import ss_drl -> {path})")
+    return str(path)
 
 
 def run_bare_update(agent_cfg, updates: int, seed: int = 0) -> dict:
@@ -222,6 +304,13 @@ def run_sb3(env_id: str, kwargs: dict, steps: int, learning_starts: int, max_ste
     }
 
 
+def sb3_env_id(preset: str) -> str | None:
+    """The registered gymnasium id of a maze preset (``SSDRL/Easy-v0`` for ``easy``), or None."""
+    from ss_drl.envs import ENV_IDS
+
+    return {name: env_id for env_id, name in ENV_IDS.items()}.get(str(preset))
+
+
 def bench_train(
     repeats: int,
     steps: int = 1_500,
@@ -229,57 +318,95 @@ def bench_train(
     learning_starts: int | None = None,
     experiments: Sequence[str] = ("easy_dqn_her", "easy_ss_her"),
     include_sb3: bool = True,
-    env_id: str = "SSDRL/Easy-v0",
+    env_id: str | None = None,
+    baseline_checkout: str | Path | None = None,
+    command: str | None = None,
 ) -> str:
-    """Training throughput of ss-drl vs SB3 DQN + HER on the same maze and settings (median of repeats).
+    """Training throughput of ss-drl vs SB3 DQN + HER on the same maze and settings (median of repeats), and of
+    ss-drl vs an older checkout of itself (``baseline_checkout``).
 
-    ``experiments[0]`` is compared with SB3, as it runs and in SB3's form; the rest are timed for information. The
-    default compares the replay-only ``easy_dqn_her`` (see the module's docstring).
-    ``max_steps``/``learning_starts`` default to the experiment's ``env.max_steps`` and
+    ``experiments[0]`` is the experiment timed. It is compared with SB3, as it runs and in SB3's form, when SB3 can
+    mirror it (the replay-only ``dqn_her`` on a maze with a gymnasium id; otherwise the SB3 rows are skipped with a
+    note), and with ``baseline_checkout``'s run of the same experiment, named as there (:func:`baseline_invocation`),
+    when one is given: the two interleaved, same budget, seed, learning_starts and timing. The rest of
+    ``experiments`` are timed for information. The default compares the replay-only ``easy_dqn_her`` (see the
+    module's docstring). ``max_steps``/``learning_starts`` default to the experiment's ``env.max_steps`` and
     ``max(agent.learning_starts, env.max_steps)``: SB3's ``HerReplayBuffer`` cannot sample before the first episode
-    has ended, which is only certain after ``max_steps`` env steps.
+    has ended, which is only certain after ``max_steps`` env steps. ``command`` (the command line) heads the section.
     """
-    base = compose_config([f"+experiment={experiments[0]}"])
+    from ss_drl.methods import method_label
+
+    experiment = experiments[0]
+    base = compose_config([f"+experiment={experiment}"])
+    baseline = None
+    if baseline_checkout is not None:
+        baseline_checkout = Path(baseline_checkout).resolve()
+        base_name, base_overrides = baseline_invocation(experiment)  # ValueError (one line) for no baseline
+        if not (baseline_checkout / "conf" / "experiment" / f"{base_name}.yaml").is_file():
+            raise ValueError(
+                f"{baseline_checkout}: has no conf/experiment/{base_name}.yaml (the baseline of {experiment})"
+            )
+        package = checkout_package(baseline_checkout)
+        commit = checkout_commit(baseline_checkout)
+        baseline = (base_name, base_overrides, commit, package)
     max_steps = int(base.env.max_steps if max_steps is None else max_steps)
     if learning_starts is None:
         learning_starts = max(int(base.agent.learning_starts), max_steps)
     learning_starts = int(learning_starts)
-    agent, her = base.agent, base.her
-    form = sb3_form(agent)
+    agent, her = base.agent, base.get("her")
+    deep = "hidden" in agent  # a DQN learner: it has an SB3 form and a bare-update ceiling
+    env_id = env_id or sb3_env_id(base.env.preset)
+    mirror = method_label(base) == "dqn_her" and env_id is not None
     out = [
-        f"## train: training throughput on {base.env.preset} (median of {repeats}; {steps} timed env steps after "
-        f"learning_starts={learning_starts}; torch threads {torch.get_num_threads()})",
+        f"## train: training throughput of `{experiment}` on {base.env.preset} (median of {repeats}; {steps} timed env "
+        f"steps after learning_starts={learning_starts}; torch threads {torch.get_num_threads()})",
         "",
     ]
-    have_sb3 = include_sb3 and sb3_available()
-    note = None
-    if include_sb3 and not have_sb3:
-        note = (
+    if command:
+        out += [f"`$ {command}`", ""]
+    have_sb3 = include_sb3 and mirror and sb3_available()
+    notes = []
+    if include_sb3 and not mirror:
+        notes.append(
+            "> **Note:** SB3 rows skipped: SB3's `DQN` + `HerReplayBuffer` mirrors only the replay-only `dqn_her` on "
+            f"a maze with a gymnasium id, and `{experiment}` is {method_label(base)} on {base.env.preset}."
+        )
+    elif include_sb3 and not have_sb3:
+        notes.append(
             "> **Note:** stable-baselines3 is not installed, so the SB3 rows are skipped. Install it with "
             '`pip install -c constraints.txt "stable-baselines3>=2.3"` (or `pip install -e ".[bench]"`).'
         )
 
     runs: dict[str, list[dict]] = {name: [] for name in experiments}
-    form_key = f"{experiments[0]}, SB3's form"
-    runs[form_key] = []
+    form = sb3_form(agent) if mirror else ()
+    form_key = f"{experiment}, SB3's form"
+    base_key = f"{experiment}, baseline"
+    runs[form_key], runs[base_key] = [], []
     if have_sb3:
         runs["sb3"] = []
         kwargs = sb3_kwargs(agent, her, learning_starts, learning_starts + steps)
-    bare: list[dict] = []
-    # Warm-up (imports, allocator, first-call overheads): a short run of each, untimed.
-    run_ssdrl(experiments[0], min(steps, 40), min(learning_starts, 40), max_steps=min(max_steps, 40))
-    if have_sb3:
+        # Warm-up of SB3 in this process (imports, allocator, first-call overheads): a short run, untimed. Each
+        # ss-drl run is a fresh subprocess whose start-up the train-phase window leaves out.
         warm = dict(kwargs, learning_starts=min(learning_starts, 40))
         run_sb3(env_id, warm, min(steps, 40), min(learning_starts, 40), max_steps=min(max_steps, 40))
-    # Interleaved, so that drifting load on a shared machine hits every method alike.
+    bare: list[dict] = []
+    # Interleaved (ours, baseline, ours, baseline, ...), so that drifting load on a shared machine hits every run alike.
     for _ in range(repeats):
-        runs[experiments[0]].append(run_ssdrl(experiments[0], steps, learning_starts, max_steps))
-        runs[form_key].append(run_ssdrl(experiments[0], steps, learning_starts, max_steps, overrides=form))
+        runs[experiment].append(run_ssdrl(experiment, steps, learning_starts, max_steps))
+        if baseline:
+            runs[base_key].append(
+                run_ssdrl(
+                    baseline[0], steps, learning_starts, max_steps, overrides=baseline[1], checkout=baseline_checkout
+                )
+            )
+        if mirror:
+            runs[form_key].append(run_ssdrl(experiment, steps, learning_starts, max_steps, overrides=form))
         if have_sb3:
             runs["sb3"].append(run_sb3(env_id, kwargs, steps, learning_starts, max_steps))
         for name in experiments[1:]:
             runs[name].append(run_ssdrl(name, steps, learning_starts, max_steps))
-        bare.append(run_bare_update(agent, steps))
+        if deep:
+            bare.append(run_bare_update(agent, steps))
 
     def row(label: str, framework: str, results: list[dict]) -> list:
         m = {key: median([r[key] for r in results]) for key in ("steps_per_s", "updates_per_s", "whole_steps_per_s")}
@@ -293,28 +420,30 @@ def bench_train(
             fmt_rate(m["whole_steps_per_s"]),
         ]
 
-    rows = [
-        row(f"`{experiments[0]}`", "ss-drl (TorchRL)", runs[experiments[0]]),
-        row(f"`{experiments[0]}` in SB3's form", "ss-drl (TorchRL)", runs[form_key]),
-    ]
+    rows = [row(f"`{experiment}`", "ss-drl (TorchRL)", runs[experiment])]
+    if baseline:
+        rows.append(row(f"`{baseline[0]}` at {baseline[2]} (baseline)", f"ss-drl {baseline[2]}", runs[base_key]))
+    if mirror:
+        rows.append(row(f"`{experiment}` in SB3's form", "ss-drl (TorchRL)", runs[form_key]))
     if have_sb3:
         rows.append(row("SB3 `DQN` + `HerReplayBuffer`", f"stable-baselines3 {sb3_version()}", runs["sb3"]))
     for name in experiments[1:]:
         rows.append(row(f"`{name}` (Smart Start on; for information)", "ss-drl (TorchRL)", runs[name]))
-    # At train_freq env steps per gradient_steps updates, the bare update rate bounds the env steps/s.
-    steps_per_update = int(agent.train_freq) / int(agent.gradient_steps)
-    bare_rate = median([r["updates_per_s"] for r in bare])
-    rows.append(
-        [
-            "bare PyTorch update of SB3's network (no env, no buffer, no TorchRL): the eager-PyTorch ceiling",
-            f"torch {torch.__version__}",
-            "-",
-            steps,
-            fmt_rate(bare_rate * steps_per_update),
-            f"{bare_rate:.1f}",
-            "-",
-        ]
-    )
+    if deep:
+        # At train_freq env steps per gradient_steps updates, the bare update rate bounds the env steps/s.
+        steps_per_update = int(agent.train_freq) / int(agent.gradient_steps)
+        bare_rate = median([r["updates_per_s"] for r in bare])
+        rows.append(
+            [
+                "bare PyTorch update of SB3's network (no env, no buffer, no TorchRL): the eager-PyTorch ceiling",
+                f"torch {torch.__version__}",
+                "-",
+                steps,
+                fmt_rate(bare_rate * steps_per_update),
+                f"{bare_rate:.1f}",
+                "-",
+            ]
+        )
     headers = [
         "run",
         "framework",
@@ -325,19 +454,33 @@ def bench_train(
         "whole-run env steps/s",
     ]
     out += [markdown_table(headers, rows), ""]
-    if note:
+    for note in notes:
         out += [note, ""]
+    ours = median([r["steps_per_s"] for r in runs[experiment]])
+    if baseline:
+        theirs = median([r["steps_per_s"] for r in runs[base_key]])
+        out.append(
+            f"- ratio ours/baseline (train-phase env steps/s, `{experiment}` vs {baseline[2]}'s `{baseline[0]}`): "
+            f"**{ours / theirs:.2f}x**"
+        )
+        out.append(
+            f"- baseline: `python scripts/train.py +experiment={baseline[0]}"
+            + "".join(f" {o}" for o in baseline[1])
+            + f"` (docs/migration.md), run in {baseline_checkout} (its `ss_drl`: {baseline[3]}) with the same "
+            "budget, seed, learning_starts and timing; every run is a subprocess `python scripts/train.py` of its "
+            "checkout, the two interleaved"
+        )
     if have_sb3:
-        ours = median([r["steps_per_s"] for r in runs[experiments[0]]])
         same_form = median([r["steps_per_s"] for r in runs[form_key]])
         theirs = median([r["steps_per_s"] for r in runs["sb3"]])
-        out.append(f"- ratio ours/SB3 (train-phase env steps/s, `{experiments[0]}`): **{ours / theirs:.2f}x**")
+        out.append(f"- ratio ours/SB3 (train-phase env steps/s, `{experiment}`): **{ours / theirs:.2f}x**")
         out.append(f"- ratio ours/SB3 with SB3's form of DQN ({SB3_FORM_NOTE}): **{same_form / theirs:.2f}x**")
         out.append(
             f"- ceiling/SB3: **{bare_rate * steps_per_update / theirs:.2f}x**: at this update-to-data ratio no "
             "trainer built on eager PyTorch steps the env faster than its bare update allows, env and buffer free"
         )
-    out.append(f"- SB3's form ({SB3_FORM_NOTE}): `{experiments[0]}` {' '.join(form)}")
+    if mirror:
+        out.append(f"- SB3's form ({SB3_FORM_NOTE}): `{experiment}` {' '.join(form)}")
     for name in experiments[1:]:
         decisions = median([r["decisions"] for r in runs[name]])
         out.append(f"- `{name}`: {decisions:.0f} Smart Start decisions per run (one per episode start after the first)")
@@ -345,9 +488,10 @@ def bench_train(
         "- whole-run = all env steps / wall time (ss-drl: the trainer's `env_steps_per_s`, which includes the "
         "greedy evaluations at step 0 and at the end; SB3: both `learn` calls)"
     )
+    if not mirror:
+        return "\n".join(out) + "\n"
     from ss_drl.agents.settings import DQNSettings
     from ss_drl.agents.targets import assumptions
-    from ss_drl.methods import method_label
 
     bounds = ", ".join(assumptions(DQNSettings.from_config(agent))) or "none"
     interval, tau = sb3_target_update(agent)
@@ -358,7 +502,7 @@ def bench_train(
         ours_target = f"Polyak, tau={agent.tau} every update"
         their_target = f"Polyak, tau={tau:.4g} every {interval} env step(s)"
     parity = [
-        ["learner", f"{method_label(base)} (`{experiments[0]}`; bounds on: {bounds})", "`DQN` + `HerReplayBuffer`"],
+        ["learner", f"{method_label(base)} (`{experiment}`; bounds on: {bounds})", "`DQN` + `HerReplayBuffer`"],
         ["env", f"`BatchedMazeEnv({base.env.preset!r}, 1, max_steps={max_steps})`", f"`gymnasium.make({env_id!r})`"],
         [
             "network",

@@ -1,5 +1,6 @@
 """Throughput benchmarks: `python scripts/benchmark.py [--section SECTION|all] [--repeats R] [--quick]`, SECTION one of
-env, train, planner, her, update.
+env, train, planner, her, update. The train section times `--experiment NAME` (default easy_dqn_her), side by side
+with an older checkout's run of it with `--baseline-checkout PATH` (names mapped by docs/migration.md).
 
 All logic lives in the checkout's top-level :mod:`benchmarks` package (not installed with ss-drl).
 """

@@ -402,6 +402,67 @@ def test_sb3_target_update_moves_the_target_at_ss_drl_rate(train_freq, gradient_
     assert sb3_tau == 1.0 and interval == copies * train_freq // gradient_steps
 
 
+# --- against a baseline checkout (issue 49) ---------------------------------------------------------------------------
+BASELINE = Path("/work/exp/base")  # a `git worktree add /work/exp/base 7ac5009`, where one exists
+
+
+def test_baseline_invocation_maps_names_by_the_migration_table():
+    lm = list(train.LM_OVERRIDES)
+    assert train.baseline_invocation("hard_ss_her_bounded") == ("hard_ss_her", [])
+    assert train.baseline_invocation("easy_small_dqn_bounded") == ("easy_small_dqn", [])
+    assert train.baseline_invocation("easy_ss_her") == ("easy_ss_her", lm)
+    assert train.baseline_invocation("medium_small_dqn_her") == ("medium_small_dqn_her", lm)
+    assert train.baseline_invocation("extreme_ss") == ("extreme_ss", lm)
+    assert train.baseline_invocation("easy_tabular_ss") == ("easy_tabular_ss", [])
+    assert train.baseline_invocation("hard_small_tabular") == ("hard_small_tabular", [])
+    # docs/migration.md's overrides, which make 7ac5009's shared setting (LCFATO) the replay-only DQN (LM).
+    assert lm == [
+        "agent.n_step_max=true",
+        "agent.distance_ceiling=false",
+        "agent.distance_floor=false",
+        "agent.bound_all_actions=false",
+        "agent.model_targets=false",
+        "agent.optimistic_floor=false",
+    ]
+    for experiment in ("easy_frontier", "easy_small_frontier", "easy_nonsense"):
+        with pytest.raises(ValueError, match="has no baseline"):
+            train.baseline_invocation(experiment)
+
+
+def test_baseline_refused_in_one_line_for_an_experiment_without_one(capsys):
+    code = cli.main(["--section", "train", "--experiment", "easy_frontier", "--baseline-checkout", str(ROOT)])
+    captured = capsys.readouterr()
+    assert code == 2 and captured.out == ""
+    assert captured.err.splitlines() == [
+        "scripts/benchmark.py: --baseline-checkout: easy_frontier: the frontier explorer is new since 7ac5009, so it "
+        "has no baseline to run"
+    ]
+
+
+@pytest.mark.skipif(not (BASELINE / "scripts" / "train.py").is_file(), reason=f"no baseline checkout at {BASELINE}")
+def test_train_section_quick_against_a_baseline_checkout():
+    argv = ["--section", "train", "--quick", "--repeats", "1", "--experiment", "easy_small_dqn_her"]
+    text = run_main([*argv, "--baseline-checkout", str(BASELINE)])
+    commit = train.checkout_commit(BASELINE)
+    assert f"`$ python scripts/benchmark.py {' '.join(argv)} --baseline-checkout {BASELINE}`" in text
+    rows, _ = _train_rows(text)
+    ours, theirs = rows["`easy_small_dqn_her`"], rows[f"`easy_small_dqn_her` at {commit} (baseline)"]
+    assert theirs["framework"] == f"ss-drl {commit}"
+    steps = cli.QUICK_SIZES["train"]["steps"]
+    for row in (ours, theirs):
+        assert 0 < int(row["timed env steps"]) < steps
+        assert all(number(row[key]) > 0 for key in ("train-phase env steps/s", "updates/s", "whole-run env steps/s"))
+    ratio = bullet(text, r"^- ratio ours/baseline \(train-phase env steps/s, .*: \*\*(\S+)\*\*$")[1]
+    assert_quotient(ratio, ours["train-phase env steps/s"], theirs["train-phase env steps/s"])
+    # The baseline ran its own code, under the replay-only DQN's name and overrides at 7ac5009.
+    line = bullet(
+        text, r"^- baseline: `python scripts/train.py (.*)` \(docs/migration.md\), run in (\S+) \(its `ss_drl`: (\S+)\)"
+    )
+    assert line[1].split() == ["+experiment=easy_small_dqn_her", *train.LM_OVERRIDES]
+    assert Path(line[3]).resolve().is_relative_to(BASELINE.resolve())
+    assert "SB3's form" in text  # a replay-only dqn_her: SB3 can mirror it
+
+
 # --- command line -----------------------------------------------------------------------------------------------------
 def test_quick_shrinks_every_section():
     assert set(cli.QUICK_SIZES) == set(cli.SECTIONS)
