@@ -15,7 +15,8 @@ For a sampled transition (s_t, a_t, g) whose window runs m steps (``n_steps``, s
    prediction, clamped the same way into its all-action bounds and the value range. The loss adds each one's
    distance to that held value (zero where nothing holds it elsewhere).
 
-That order is the only one, and it is written once, in :meth:`TDTarget.taken` and :meth:`TDTarget.others`.
+That order is the only one, and it is written once, in :meth:`TDTarget.__call__` (steps 1-3, with every bootstrap
+of the update in one call: one batched pass per network).
 
 Each bound states what it assumes (:data:`ASSUMPTIONS`). A run turns off a bound whose assumption its environment
 breaks, before training, with one line naming it (:func:`resolve_bounds`); a bound the user set explicitly is
