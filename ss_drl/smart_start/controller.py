@@ -6,6 +6,20 @@ a state has been visited), the smart start state S_ss is chosen by UCB, the plan
 the count model, and the copy follows that route until it is within theta of S_ss, reaches G, or the episode's step
 budget ends. The network's epsilon-greedy policy acts for the rest of the same episode. Both phases share the one
 step budget of the episode, and every transition of both goes into the replay buffer and the count model.
+
+Two options, off in the paper's Smart Start, aim the episode at the frontier of exploration (the known states with a
+move not tried yet, :mod:`ss_drl.smart_start.frontier`), as a perfect-memory explorer would (issue 49):
+
+* ``select="frontier"``: S_ss is the UCB choice among the visited states on the frontier (among all visited states
+  when none is);
+* ``explore``: what happens on arrival at S_ss. ``"epsilon_greedy"`` (the paper): the agent's policy takes over.
+  ``"untried"``: one untried move of S_ss is tried first (uniformly at random among them), then the policy.
+  ``"frontier"`` (Go-Explore's "return, then explore"): an exploration phase follows that tries an untried move
+  wherever there is one and otherwise walks the planner's route to the nearest frontier state, until the episode
+  ends or no frontier state is left; then the policy.
+
+``explore_after_goal=False`` turns both options off once the goal has been reached in any episode, so that the rest
+of the run is the paper's Smart Start.
 """
 
 from __future__ import annotations
@@ -13,8 +27,9 @@ from __future__ import annotations
 import torch
 
 from ss_drl.envs.maze import Maze
-from ss_drl.ops import epsilon_greedy, manhattan
+from ss_drl.ops import epsilon_greedy, manhattan, random_argmax
 from ss_drl.smart_start.counts import CountModel
+from ss_drl.smart_start.frontier import Frontier
 from ss_drl.smart_start.planner import Planner
 from ss_drl.smart_start.selection import select_smart_start
 
@@ -34,7 +49,15 @@ class SmartStart:
         generator: RNG for the eta draws and the tie-breaks (separate from the training RNG, so that eta = 0
             reproduces a run without Smart Start exactly).
         guided_epsilon: probability of a random action at each guided step (0: the route is followed exactly).
+        frontier: the tried moves, current at every step (needed by ``select="frontier"`` and ``explore``).
+        select: ``"visited"`` (the paper: S_ss among all visited states) or ``"frontier"``.
+        explore: ``"epsilon_greedy"`` (the paper), ``"untried"`` or ``"frontier"``: what follows arrival at S_ss.
+        explore_after_goal: keep ``select`` and ``explore`` after the goal has been reached (False: the paper's
+            Smart Start from then on).
     """
+
+    SELECT = ("visited", "frontier")
+    EXPLORE = ("epsilon_greedy", "untried", "frontier")
 
     def __init__(
         self,
@@ -48,10 +71,18 @@ class SmartStart:
         planner: Planner,
         generator: torch.Generator,
         guided_epsilon: float = 0.0,
+        frontier: Frontier | None = None,
+        select: str = "visited",
+        explore: str = "epsilon_greedy",
+        explore_after_goal: bool = True,
     ):
+        if select not in self.SELECT or explore not in self.EXPLORE:
+            raise ValueError(f"unknown Smart Start option: select={select!r}, explore={explore!r}")
         self.maze, self.counts, self.planner, self.generator = maze, counts, planner, generator
         self.eta, self.c_ss, self.w_q, self.theta = float(eta), float(c_ss), float(w_q), int(theta)
         self.guided_epsilon = float(guided_epsilon)
+        self.select, self.explore, self.explore_after_goal = select, explore, bool(explore_after_goal)
+        self.frontier = frontier if frontier is not None else Frontier(counts)
         n = int(num_envs)
         self.episodes = torch.zeros(n, dtype=torch.int64)  # finished episodes per copy
         self.active = torch.zeros(n, dtype=torch.bool)  # in the guided phase now
@@ -62,6 +93,25 @@ class SmartStart:
         self.target = torch.full((n,), -1, dtype=torch.int64)  # S_ss per copy
         self.route = torch.zeros(n, maze.n_cells, dtype=torch.int64)  # greedy planner action per cell
         self.decisions = 0
+        # The exploration phase after arrival (explore != "epsilon_greedy").
+        self.exploring = torch.zeros(n, dtype=torch.bool)  # in the exploration phase now
+        self.explore_steps = torch.zeros(n, dtype=torch.int64)  # steps taken in it this episode
+        self.reach = torch.zeros(n, maze.n_cells, dtype=torch.bool)  # cells from which the route leads on
+        self.plan_version = torch.full((n,), -1, dtype=torch.int64)  # the model's size when the route was planned
+        self.goal = torch.full((n,), -1, dtype=torch.int64)  # the episode's goal (never a frontier state)
+
+    # --- the options in force --------------------------------------------------------------------------------------
+    def goal_found(self) -> bool:
+        """Whether some transition has been rewarded (the goal has been reached in an episode)."""
+        return bool((self.counts.reward_sums > 0).any())
+
+    def _options_on(self) -> bool:
+        return self.explore_after_goal or not self.goal_found()
+
+    @property
+    def controlling(self) -> torch.Tensor:
+        """Copies whose next action the controller chooses: the guided phase and the exploration phase."""
+        return self.active | self.exploring
 
     def within(self, cells: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
         """Whether each cell is within Manhattan distance theta of its target."""
@@ -78,6 +128,9 @@ class SmartStart:
         self.steps[copies] = 0
         self.planned_steps[copies] = 0
         self.target[copies] = -1
+        self.exploring[copies] = False
+        self.explore_steps[copies] = 0
+        self.goal[copies] = goals[copies]
         if self.eta <= 0 or self.counts.total_visits == 0:
             return
         eligible = copies & (self.episodes > 0)
@@ -85,6 +138,7 @@ class SmartStart:
         chosen = torch.nonzero(eligible & (draw < self.eta)).squeeze(-1)
         if chosen.numel() == 0:
             return
+        options = self._options_on()
         targets = select_smart_start(
             self.counts,
             lambda states, g: q_values(states, g).amax(dim=-1),
@@ -92,6 +146,7 @@ class SmartStart:
             self.c_ss,
             self.w_q,
             self.generator,
+            allowed=self.frontier.states(goals[chosen]) if options and self.select == "frontier" else None,
         )
         plan = self.planner.plan(self.counts, targets, self.generator)
         self.decisions += int(chosen.numel())
@@ -106,13 +161,36 @@ class SmartStart:
         there = self.within(cells[chosen], targets)
         self.active[chosen] = ~there
         self.reached[chosen] = there
+        self.exploring[chosen] = there & (self.explore != "epsilon_greedy") & options
+
+    def frontier_steps(self, copies: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
+        """(N,) for the copies of mask ``copies`` that begin with a guided phase: the fewest steps on the count model
+        from S_ss to a frontier state (0 when S_ss is one; -1 when none can be reached, and for the other copies).
+        A measurement for episodes.csv: it draws nothing from the controller's generator."""
+        out = torch.full(copies.shape, -1, dtype=torch.int64)
+        idx = torch.nonzero(copies & self.used).squeeze(-1)
+        if idx.numel() == 0:
+            return out
+        terminal = self.frontier.states(goals[idx])
+        targets = self.target[idx]
+        on = terminal[torch.arange(idx.numel()), targets]
+        out[idx[on]] = 0
+        if bool((~on).any()):
+            plan = self.planner.plan_to(self.counts, terminal[~on], torch.Generator().manual_seed(0))
+            values = plan.values[targets[~on], torch.arange(int((~on).sum()))].double()
+            gamma = torch.tensor(self.planner.gamma, dtype=torch.float64)
+            steps = torch.where(values > 0, torch.log(values) / torch.log(gamma) + 1, -1.0)
+            out[idx[~on]] = steps.round().long()
+        return out
 
     def guide(self, cells: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """The planner's action for copies in the guided phase, ``action`` for the others.
+        """The controller's action for copies in the guided or exploration phase, ``action`` for the others.
 
         With ``guided_epsilon > 0`` a guided step is a uniformly random action with that probability (the route
         is then taken up again from wherever the agent is: the plan covers every visited state).
         """
+        if bool(self.exploring.any()):
+            action = self._explore(cells, action)
         if not bool(self.active.any()):
             return action
         planned = self.route.gather(1, cells.unsqueeze(1)).squeeze(1)
@@ -120,27 +198,75 @@ class SmartStart:
             planned = epsilon_greedy(planned, self.guided_epsilon, self.generator)
         return torch.where(self.active, planned, action)
 
+    def _explore(self, cells: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """The exploration phase's actions: an untried move where the cell has one (uniformly at random among them);
+        otherwise (``explore="frontier"``) the route to the nearest frontier state, replanned when the count model
+        has grown since it was planned or the route ends here. A copy whose cell has no untried move leaves the phase
+        with ``explore="untried"``, and with ``"frontier"`` once no frontier state is left; where the model does not
+        lead on from the cell yet (a cell entered in this batch), the policy's action is taken and the phase goes on.
+        """
+        copies = self.exploring.clone()
+        self.explore_steps += copies.long()
+        untried = self.frontier.untried(cells)  # (N, A)
+        has = untried.any(dim=1)
+        pick = random_argmax(untried.to(torch.float64), dim=1, generator=self.generator)
+        out = torch.where(copies & has, pick, action)
+        walking = copies & ~has
+        if self.explore == "untried":  # one move, then the policy
+            self.exploring[copies] = False
+            return out
+        if not bool(walking.any()):
+            return out
+        version = self.counts.keys.numel()
+        here = self.reach.gather(1, cells.unsqueeze(1)).squeeze(1)
+        stale = walking & ((self.plan_version != version) | ~here)
+        if bool(stale.any()):
+            idx = torch.nonzero(stale).squeeze(-1)
+            terminal = self.frontier.states(self.goal[idx])
+            empty = ~terminal.any(dim=1)
+            self.exploring[idx[empty]] = False  # nothing left to explore: the policy from here on
+            walking &= self.exploring
+            idx, terminal = idx[~empty], terminal[~empty]
+            if idx.numel():
+                plan = self.planner.plan_to(self.counts, terminal, self.generator)
+                self.route[idx] = plan.policy
+                self.reach[idx] = (plan.values.T > 0) & ~terminal
+                self.plan_version[idx] = version
+        here = self.reach.gather(1, cells.unsqueeze(1)).squeeze(1)
+        routed = self.route.gather(1, cells.unsqueeze(1)).squeeze(1)
+        return torch.where(walking & here, routed, out)
+
     def after_step(self, was_active: torch.Tensor, next_cells: torch.Tensor, done: torch.Tensor) -> None:
-        """Advance the guided phases after an env step (``was_active``: the mask before the step)."""
+        """Advance the guided phases after an env step (``was_active``: the guided-phase mask before the step)."""
+        self.exploring &= ~done
         if not bool(was_active.any()):
             return
         self.steps += was_active.long()
         arrived = was_active & self.within(next_cells, self.target)
         self.reached |= arrived
         self.active &= ~arrived & ~done
+        if self.explore != "epsilon_greedy" and bool(arrived.any()) and self._options_on():
+            self.exploring |= arrived & ~done
 
     def end_episodes(self, copies: torch.Tensor) -> None:
         self.episodes[copies] += 1
         self.active[copies] = False
+        self.exploring[copies] = False
+
+    STATE = ("episodes", "active", "used", "reached", "steps", "planned_steps", "target", "route")
+    EXPLORE_STATE = ("exploring", "explore_steps", "reach", "plan_version", "goal")
 
     def state_dict(self) -> dict:
-        names = ("episodes", "active", "used", "reached", "steps", "planned_steps", "target", "route")
-        state = {name: getattr(self, name).clone() for name in names}
+        state = {name: getattr(self, name).clone() for name in self.STATE + self.EXPLORE_STATE}
         state.update(generator=self.generator.get_state(), decisions=self.decisions)
         return state
 
     def load_state_dict(self, state: dict) -> None:
-        for name in ("episodes", "active", "used", "reached", "steps", "planned_steps", "target", "route"):
+        for name in self.STATE:
             setattr(self, name, state[name].clone())
+        for name in self.EXPLORE_STATE:  # absent from checkpoints written before the exploration options
+            if name in state:
+                setattr(self, name, state[name].clone())
         self.generator.set_state(state["generator"])
         self.decisions = state["decisions"]
+        self.frontier.sync()

@@ -32,7 +32,7 @@ from ss_drl.smart_start.counts import CountModel, ModelStructure
 class Plan:
     """The result of planning towards ``targets`` (one column per target)."""
 
-    targets: torch.Tensor  # (B,) target states
+    targets: torch.Tensor  # (B,) target states (-1 where a row plans towards a set of states)
     values: torch.Tensor  # (S, B) V(s) per target
     q_values: torch.Tensor  # (S, A, B)
     policy: torch.Tensor  # (B, S) greedy action per state, ties broken at random
@@ -68,10 +68,22 @@ class Planner:
     def plan(self, model: CountModel, targets: torch.Tensor | int, generator: torch.Generator | None = None) -> Plan:
         """Plan towards each of ``targets`` (a state or a (B,) tensor of states) on the model's current counts."""
         targets = torch.as_tensor(targets, dtype=torch.int64).reshape(-1)
+        return self.plan_to(model, self.terminal_mask(model.n_states, targets).T, generator, targets)
+
+    def plan_to(
+        self,
+        model: CountModel,
+        terminal: torch.Tensor,
+        generator: torch.Generator | None = None,
+        targets: torch.Tensor | None = None,
+    ) -> Plan:
+        """Plan towards each row of ``terminal`` ((B, S) bool: a set of states to reach, as the nearest frontier state
+        for Smart Start's exploration phase) on the model's current counts: reward 1 on entering the set."""
         st = model.structure()
         # Compact the problem to the states with tried actions (the structure's slots). Every other state has all
         # actions untried, so its value is 0 for good: it maps to one extra "dummy" slot whose value stays 0.
-        terminal = self.terminal_mask(model.n_states, targets).T  # (B, S)
+        if targets is None:
+            targets = torch.full((terminal.shape[0],), -1, dtype=torch.int64)
         if st.deterministic:
             q, values, sweeps, converged = self._deterministic_sweeps(st, model.n_actions, terminal)
         else:

@@ -25,6 +25,7 @@ def select_smart_start(
     c_ss: float,
     w_q: float = 1.0,
     generator: torch.Generator | None = None,
+    allowed: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """S_ss for each goal in ``goals`` (B,): argmax over visited states (N(s) > 0) of the UCB, random tie-break.
 
@@ -33,6 +34,8 @@ def select_smart_start(
         max_q_fn: ``f(states (n,), goals (B,)) -> (B, n)`` max_a Q(s||g, a), one batched evaluation; not called
             when ``w_q == 0`` (S_ss by counts alone, the paper's experiment), which then needs no network pass.
         goals: (B,) desired goal per env copy that starts an episode.
+        allowed: optional (B, S) bool over all states: S_ss is chosen among the visited states it allows (the
+            frontier, for ``smart_start.select=frontier``); a row that allows none of them chooses among all.
     Returns:
         (B,) smart start states.
     """
@@ -44,4 +47,8 @@ def select_smart_start(
     else:
         max_q = max_q_fn(states, goals)  # (B, n)
     scores = ucb_scores(max_q, counts.state_counts[states].unsqueeze(0), c_ss, w_q)
+    if allowed is not None:
+        allowed = allowed[:, states]
+        allowed |= ~allowed.any(dim=1, keepdim=True)
+        scores = scores.masked_fill(~allowed, -torch.inf)
     return states[random_argmax(scores, dim=1, generator=generator)]

@@ -24,6 +24,7 @@ from tensordict import TensorDict
 
 from ss_drl.envs.batched import BatchedMazeEnv
 from ss_drl.smart_start.controller import SmartStart
+from ss_drl.smart_start.frontier import Frontier
 
 
 @dataclasses.dataclass
@@ -41,6 +42,10 @@ class Episode:
     ss_steps: int
     ss_planned_steps: int
     end_state: int  # the cell the episode ended in (G on success)
+    new_moves: int = 0  # moves (s, a) tried for the first time in the run during this episode
+    new_moves_after_ss: int = 0  # of them, after the guided phase (the exploration phase and the policy's)
+    explore_steps: int = 0  # steps of Smart Start's exploration phase (smart_start.explore)
+    ss_frontier_steps: int = -1  # planner's steps from S_ss to the nearest frontier state at the episode start
 
 
 class MazeCollector:
@@ -51,15 +56,28 @@ class MazeCollector:
         agent: an :class:`~ss_drl.agents.Agent` (its ``act`` and, for Smart Start's UCB, ``q_values``).
         smart_start: the Smart Start controller, or None.
         frames_per_batch: the most transitions per batch (a multiple of the number of copies).
+        frontier: the tried moves, observed at every step (each episode's ``new_moves``); Smart Start's own when
+            it is on.
     """
 
-    def __init__(self, env: BatchedMazeEnv, agent, smart_start: SmartStart | None, frames_per_batch: int):
+    def __init__(
+        self,
+        env: BatchedMazeEnv,
+        agent,
+        smart_start: SmartStart | None,
+        frames_per_batch: int,
+        frontier: Frontier | None = None,
+    ):
         self.env, self.agent, self.smart_start = env, agent, smart_start
+        self.frontier = smart_start.frontier if smart_start is not None else frontier
         self.num_envs = env.num_envs
         self.steps_per_batch = max(1, frames_per_batch // self.num_envs)
         self.env_steps = 0  # transitions collected (all copies)
         self.ep_length = torch.zeros(self.num_envs, dtype=torch.int64)
         self.ep_return = torch.zeros(self.num_envs, dtype=torch.float32)
+        self.ep_new_moves = torch.zeros(self.num_envs, dtype=torch.int64)
+        self.ep_new_moves_after_ss = torch.zeros(self.num_envs, dtype=torch.int64)
+        self.ss_frontier_steps = torch.full((self.num_envs,), -1, dtype=torch.int64)
         self.starting = torch.zeros(self.num_envs, dtype=torch.bool)  # copies whose episode starts at the next step
         self._td: TensorDict | None = None
 
@@ -97,6 +115,11 @@ class MazeCollector:
             out, self._td = self.env.step_and_maybe_reset(td)
             nxt = out.get("next")
             new_cells, r, done = nxt.get("observation"), nxt.get("reward"), nxt.get("done").squeeze(-1)
+            if self.frontier is not None:
+                new = self.frontier.observe(cells, act, new_cells).long()
+                self.ep_new_moves += new
+                if guided is not None:
+                    self.ep_new_moves_after_ss += new * (~guided).long()
             t = steps
             obs[t], goal[t], action[t], next_obs[t], reward[t] = cells, goals, act, new_cells, r
             terminated[t], truncated[t] = nxt.get("terminated"), nxt.get("truncated")
@@ -148,9 +171,13 @@ class MazeCollector:
         self.starting[:] = False
         self.ep_length[copies] = 0
         self.ep_return[copies] = 0
+        self.ep_new_moves[copies] = 0
+        self.ep_new_moves_after_ss[copies] = 0
         if self.smart_start is not None:
             obs, goals = self._td.get("observation"), self._td.get("desired_goal")
             self.smart_start.start_episodes(copies, obs, goals, self.agent.q_values)
+            steps = self.smart_start.frontier_steps(copies, goals)
+            self.ss_frontier_steps = torch.where(copies, steps, self.ss_frontier_steps)
 
     def _finish(self, done: torch.Tensor, success: torch.Tensor, end_cells: torch.Tensor) -> list[Episode]:
         ss = self.smart_start
@@ -170,6 +197,10 @@ class MazeCollector:
                     ss_steps=int(ss.steps[e]) if used else 0,
                     ss_planned_steps=int(ss.planned_steps[e]) if used else 0,
                     end_state=int(end_cells[e]),
+                    new_moves=int(self.ep_new_moves[e]),
+                    new_moves_after_ss=int(self.ep_new_moves_after_ss[e]) if used else 0,
+                    explore_steps=int(ss.explore_steps[e]) if used else 0,
+                    ss_frontier_steps=int(self.ss_frontier_steps[e]) if used else -1,
                 )
             )
         if ss is not None:
@@ -182,6 +213,9 @@ class MazeCollector:
             "env_steps": self.env_steps,
             "ep_length": self.ep_length.clone(),
             "ep_return": self.ep_return.clone(),
+            "ep_new_moves": self.ep_new_moves.clone(),
+            "ep_new_moves_after_ss": self.ep_new_moves_after_ss.clone(),
+            "ss_frontier_steps": self.ss_frontier_steps.clone(),
             "starting": self.starting.clone(),
             "td": None if self._td is None else self._td.select("observation", "desired_goal").clone(),
             "env_cell": self.env.cell.clone(),
@@ -191,6 +225,11 @@ class MazeCollector:
     def load_state_dict(self, state: dict) -> None:
         self.env_steps = state["env_steps"]
         self.ep_length, self.ep_return = state["ep_length"].clone(), state["ep_return"].clone()
+        for name in ("ep_new_moves", "ep_new_moves_after_ss", "ss_frontier_steps"):  # absent in older checkpoints
+            if name in state:
+                setattr(self, name, state[name].clone())
+        if self.frontier is not None:
+            self.frontier.sync()
         self.starting = state["starting"].clone()
         self._td = state["td"]
         self.env.set_state(state["env_cell"], state["env_steps_in_episode"])

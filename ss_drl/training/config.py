@@ -13,6 +13,7 @@ from ss_drl.agents.settings import DQNSettings
 from ss_drl.agents.targets import MAZE, resolve_bounds
 from ss_drl.envs.maze import PRESETS, MazeError, load_maze
 from ss_drl.her import STRATEGIES
+from ss_drl.smart_start.controller import SmartStart
 
 
 class ConfigError(ValueError):
@@ -187,6 +188,9 @@ def validate_config(cfg: DictConfig) -> None:
     _number(cfg, "smart_start.gamma", low=0, high=1, low_open=True, high_open=True)
     _number(cfg, "smart_start.tol", low=0, low_open=True)
     _number(cfg, "smart_start.max_sweeps", low=1, integer=True)
+    _choice(cfg, "smart_start.select", SmartStart.SELECT)
+    _choice(cfg, "smart_start.explore", SmartStart.EXPLORE)
+    _boolean(cfg, "smart_start.explore_after_goal")
     if name == "frontier":
         _frontier_run(cfg)
     # logger

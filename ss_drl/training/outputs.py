@@ -40,6 +40,10 @@ EPISODE_COLUMNS = (
     "epsilon",  # exploration epsilon when the episode ended
     "end_state",  # the cell the episode ended in, as "row:col" (G on success; where the agent was when it was cut)
     "states_visited",  # exploration coverage: distinct cells departed from so far, this episode included
+    "new_moves",  # moves (cell, action) tried for the first time in the run during this episode
+    "new_moves_after_ss",  # of them, after the guided phase (0 without one)
+    "explore_steps",  # steps of Smart Start's exploration phase (smart_start.explore; 0 without one)
+    "ss_frontier_steps",  # steps on the count model from S_ss to the nearest untried move at the start (-1: none)
     "wall_s",  # seconds since the run started (the last column)
 )
 

@@ -32,7 +32,7 @@ from ss_drl.envs.batched import BatchedMazeEnv
 from ss_drl.envs.maze import Maze, load_maze
 from ss_drl.methods import method_label
 from ss_drl.ops import linear_schedule
-from ss_drl.smart_start import CountModel, Planner, SmartStart
+from ss_drl.smart_start import CountModel, Frontier, Planner, SmartStart
 from ss_drl.training import checkpoint as ckpt
 from ss_drl.training.collector import Episode, MazeCollector
 from ss_drl.training.config import validate_config
@@ -158,14 +158,29 @@ def dqn_settings(cfg: DictConfig):
     return settings
 
 
-def make_smart_start(cfg: DictConfig, maze: Maze, counts: CountModel, seed: int) -> SmartStart | None:
+def make_smart_start(
+    cfg: DictConfig, maze: Maze, counts: CountModel, seed: int, frontier: Frontier | None = None
+) -> SmartStart | None:
     ss = cfg.smart_start
     if ss.eta <= 0:
         return None
     planner = Planner(maze.width, gamma=ss.gamma, theta=ss.theta, tol=ss.tol, max_sweeps=ss.max_sweeps)
     generator = torch.Generator().manual_seed(seed + 1_000_003)
     return SmartStart(
-        maze, counts, cfg.env.num_envs, ss.eta, ss.c_ss, ss.w_q, ss.theta, planner, generator, ss.guided_epsilon
+        maze,
+        counts,
+        cfg.env.num_envs,
+        ss.eta,
+        ss.c_ss,
+        ss.w_q,
+        ss.theta,
+        planner,
+        generator,
+        ss.guided_epsilon,
+        frontier=frontier,
+        select=ss.select,
+        explore=ss.explore,
+        explore_after_goal=ss.explore_after_goal,
     )
 
 
@@ -184,8 +199,11 @@ class Trainer:
         self.env = BatchedMazeEnv(self.maze, num_envs=cfg.env.num_envs, max_steps=cfg.env.max_steps)
         self.counts = CountModel(self.maze.n_cells)
         self.agent = make_agent(cfg, self.maze, int(cfg.seed), self.counts)
-        self.smart_start = make_smart_start(cfg, self.maze, self.counts, int(cfg.seed))
-        self.collector = MazeCollector(self.env, self.agent, self.smart_start, cfg.trainer.frames_per_batch)
+        self.frontier = Frontier(self.counts)
+        self.smart_start = make_smart_start(cfg, self.maze, self.counts, int(cfg.seed), self.frontier)
+        self.collector = MazeCollector(
+            self.env, self.agent, self.smart_start, cfg.trainer.frames_per_batch, self.frontier
+        )
         self.episodes = 0
         self.first_goal = FirstGoal()
         self.last_accuracy: float | None = None  # greedy accuracy at the last evaluation
@@ -321,6 +339,10 @@ class Trainer:
             "epsilon": round(self.agent.epsilon, 6),
             "end_state": "{}:{}".format(*self.maze.pos(episode.end_state)),
             "states_visited": visited,
+            "new_moves": episode.new_moves,
+            "new_moves_after_ss": episode.new_moves_after_ss,
+            "explore_steps": episode.explore_steps,
+            "ss_frontier_steps": episode.ss_frontier_steps,
             "wall_s": round(time.perf_counter() - self.start_time, 3),
         }
         self.logger.log_episode(row)

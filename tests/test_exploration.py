@@ -1,0 +1,275 @@
+"""Smart Start's exploration options (issue 49): the frontier of tried moves, S_ss chosen on the frontier, the
+untried move on arrival and the exploration phase that walks to the nearest untried move. Each on a hand-built count
+model whose answer is worked out by hand below."""
+
+from __future__ import annotations
+
+from collections import deque
+
+import pytest
+import torch
+from helpers import compose_cfg
+
+from ss_drl.envs.maze import parse_maze
+from ss_drl.smart_start import CountModel, Frontier, Planner, SmartStart
+from ss_drl.smart_start.counts import fully_explored_model
+from ss_drl.training.trainer import Trainer
+
+R, D, L, U = range(4)  # ss_drl.envs.maze.ACTIONS: right, down, left, up
+#: Row 0 is an open corridor of six cells (0-5); S (6) lies below its left end and G (11) below its right end, with a
+#: wall between them. The only way from S to G: up, right x5, down.
+HOOK = "......\nS####G\n"
+SENTINEL = 7  # the policy's "action" in these tests: never a real one, so the test sees who chose
+
+
+def _maze():
+    return parse_maze(HOOK)
+
+
+def _hand_model(maze) -> CountModel:
+    """S (6) and cells 0 and 1 have every move tried; cell 2 has every move but right. Visits: N(6) = 8, N(0) = 4,
+    N(1) = 12, N(2) = 6, so the least visited state is 0, inside explored territory."""
+    table = maze.transition_table()
+    model = CountModel(maze.n_cells)
+    moves = [(6, a, 2) for a in range(4)] + [(0, a, 1) for a in range(4)] + [(1, a, 3) for a in range(4)]
+    moves += [(2, a, 2) for a in (D, L, U)]
+    for cell, action, times in moves:
+        s = torch.full((times,), cell)
+        a = torch.full((times,), action)
+        model.update(s, a, torch.from_numpy(table[s.numpy(), a.numpy()]), torch.zeros(times))
+    return model
+
+
+def _controller(maze, model, select="frontier", explore="frontier", after_goal=True, seed=0):
+    return SmartStart(
+        maze, model, 1, eta=1.0, c_ss=2.0, w_q=0.0, theta=0, planner=Planner(maze.width, gamma=0.99),
+        generator=torch.Generator().manual_seed(seed), select=select, explore=explore, explore_after_goal=after_goal,
+    )  # fmt: skip
+
+
+def _start(ss, maze, cell=None):
+    """Begin a copy's second episode (the first never has a guided phase) at ``cell`` (S by default)."""
+    one = torch.ones(1, dtype=torch.bool)
+    ss.end_episodes(one)
+    cells = torch.tensor([maze.start_cell if cell is None else cell])
+    ss.start_episodes(one, cells, torch.tensor([maze.goal_cell]), lambda s, g: torch.zeros(g.numel(), s.numel(), 4))
+
+
+def _step(ss, maze, cell: int, update_model: bool = True) -> tuple[int, int]:
+    """One env step of the controller from ``cell``: (action, next cell). The count model learns the step at once (a
+    batch of one step) unless ``update_model`` is False (a step inside a longer batch: only the frontier sees it)."""
+    table = maze.transition_table()
+    was_active = ss.active.clone()
+    action = int(ss.guide(torch.tensor([cell]), torch.tensor([SENTINEL]))[0])
+    if action == SENTINEL:
+        return action, cell
+    nxt = int(table[cell, action])
+    step = torch.tensor([cell]), torch.tensor([action]), torch.tensor([nxt])
+    ss.frontier.observe(*step)
+    if update_model:
+        ss.counts.update(*step, torch.tensor([float(nxt == maze.goal_cell)]))
+    ss.after_step(was_active, torch.tensor([nxt]), torch.tensor([nxt == maze.goal_cell]))
+    return action, nxt
+
+
+# --- the frontier ----------------------------------------------------------------------------------------------------
+def test_frontier_is_the_known_states_with_an_untried_move_less_the_goal():
+    maze = _maze()
+    model = _hand_model(maze)
+    frontier = Frontier(model)
+    # Known: S, 0, 1, 2 (departed) and nothing else entered; only 2 has an untried move (right).
+    assert torch.nonzero(frontier.states(torch.tensor([11]))[0]).flatten().tolist() == [2]
+    assert frontier.untried(torch.tensor([2, 0])).tolist() == [[True, False, False, False], [False] * 4]
+    # Trying right in 2 enters 3: 2 leaves the frontier and 3 (all four moves untried) joins it.
+    assert frontier.observe(torch.tensor([2]), torch.tensor([R]), torch.tensor([3])).tolist() == [True]
+    assert frontier.observe(torch.tensor([2]), torch.tensor([R]), torch.tensor([3])).tolist() == [False]
+    assert torch.nonzero(frontier.states(torch.tensor([11]))[0]).flatten().tolist() == [3]
+    # The goal is never on the frontier, though its moves are never tried.
+    frontier.observe(torch.tensor([5]), torch.tensor([D]), torch.tensor([11]))
+    assert 11 not in torch.nonzero(frontier.states(torch.tensor([11]))[0]).flatten().tolist()
+    assert 11 in torch.nonzero(frontier.states(torch.tensor([0]))[0]).flatten().tolist()  # another goal's view
+
+
+def test_frontier_rebuilt_from_the_count_model_equals_the_one_kept_step_by_step():
+    maze = _maze()
+    model = CountModel(maze.n_cells)
+    kept = Frontier(model)
+    table = maze.transition_table()
+    gen = torch.Generator().manual_seed(3)
+    cell = maze.start_cell
+    for _ in range(40):
+        a = int(torch.randint(4, (1,), generator=gen))
+        nxt = int(table[cell, a])
+        kept.observe(torch.tensor([cell]), torch.tensor([a]), torch.tensor([nxt]))
+        model.update(torch.tensor([cell]), torch.tensor([a]), torch.tensor([nxt]), torch.zeros(1))
+        cell = maze.start_cell if nxt == maze.goal_cell else nxt
+    rebuilt = Frontier(model)
+    assert torch.equal(rebuilt.tried, kept.tried) and torch.equal(rebuilt.known, kept.known)
+
+
+# --- select = frontier -----------------------------------------------------------------------------------------------
+def test_smart_start_on_the_frontier_by_hand():
+    maze = _maze()
+    # The paper's UCB on counts picks the least visited state, 0, whose moves are all tried.
+    paper = _controller(maze, _hand_model(maze), select="visited", explore="epsilon_greedy")
+    _start(paper, maze)
+    assert paper.target.tolist() == [0]
+    # On the frontier the only candidate is 2, the one visited state with an untried move.
+    ss = _controller(maze, _hand_model(maze))
+    _start(ss, maze)
+    assert ss.target.tolist() == [2] and ss.active.tolist() == [True]
+    assert ss.planned_steps.tolist() == [3]  # up, right, right
+
+
+def test_smart_start_on_the_frontier_falls_back_to_every_visited_state():
+    maze = _maze()
+    ss = _controller(maze, fully_explored_model(maze))
+    _start(ss, maze)  # nothing is left to try: S_ss by the paper's UCB, a visited state
+    assert ss.used.tolist() == [True] and ss.counts.count(int(ss.target[0])) > 0
+
+
+# --- explore ---------------------------------------------------------------------------------------------------------
+def test_untried_move_on_arrival_then_the_policy():
+    maze = _maze()
+    ss = _controller(maze, _hand_model(maze), explore="untried")
+    _start(ss, maze)
+    trace = [_step(ss, maze, cell) for cell in (6, 0, 1)]  # the guided phase to S_ss = 2
+    assert trace == [(U, 0), (R, 1), (R, 2)] and not ss.active.any() and ss.exploring.tolist() == [True]
+    assert _step(ss, maze, 2) == (R, 3)  # the one untried move of S_ss
+    assert _step(ss, maze, 3)[0] == SENTINEL  # then the policy, though 3 has four untried moves
+    assert ss.explore_steps.tolist() == [1]
+
+
+def test_exploration_walks_the_shortest_route_to_the_nearest_untried_move():
+    maze = _maze()
+    ss = _controller(maze, _hand_model(maze))
+    _start(ss, maze, cell=2)  # S_ss = 2: there already, so the exploration phase begins at once
+    assert ss.exploring.tolist() == [True] and ss.steps.tolist() == [0]
+    assert _step(ss, maze, 2) == (R, 3)
+    # In 3 every move is untried: each is tried in turn (their order is random), staying or leaving as they go.
+    cell, tried_in_3 = 3, set()
+    while cell == 3:
+        action, cell = _step(ss, maze, 3)
+        assert action not in tried_in_3
+        tried_in_3.add(action)
+    # The agent left 3 by right (into 4) or by left (back into 2). From 2, whose moves are all tried, the shortest
+    # route to the nearest untried move leads right: back to 3 if it still has one, else through 3 on to 4.
+    if cell == 2:
+        assert _step(ss, maze, 2) == (R, 3)
+
+
+def test_exploration_inside_a_batch_sees_the_moves_the_model_has_not_counted_yet():
+    maze = _maze()
+    ss = _controller(maze, _hand_model(maze))
+    _start(ss, maze, cell=2)
+    assert _step(ss, maze, 2, update_model=False) == (R, 3)
+    # 2 is fully tried now, though the count model still lacks 2 -> 3; the frontier knows, and 3 is tried next.
+    action, _ = _step(ss, maze, 3, update_model=False)
+    assert action in (R, D, L, U) and ss.frontier.tried[3, action]
+
+
+def test_exploration_follows_the_frontier_rule_until_the_goal():
+    maze = _maze()
+    ss = _controller(maze, _hand_model(maze), seed=4)
+    _start(ss, maze)
+    table = maze.transition_table()
+    cell = maze.start_cell
+    while ss.active.any():
+        _, cell = _step(ss, maze, cell)
+    steps = 0
+    while cell != maze.goal_cell:
+        untried = ss.frontier.untried(torch.tensor([cell]))[0]
+        goal_frontier = ss.frontier.states(torch.tensor([maze.goal_cell]))[0]
+        dist = _known_distance(ss.frontier, table, goal_frontier)
+        action, nxt = _step(ss, maze, cell)
+        if bool(untried.any()):
+            assert untried[action]
+        else:  # one step nearer the nearest frontier state along tried moves
+            assert dist[nxt] == dist[cell] - 1
+        cell, steps = nxt, steps + 1
+        assert steps < 100
+    # The episode ended in G: the phase is over.
+    assert ss.exploring.tolist() == [False]
+
+
+def _known_distance(frontier, table, targets) -> dict[int, int]:
+    """Fewest tried moves from each known cell into ``targets`` (a BFS backwards along tried moves)."""
+    into: dict[int, set[int]] = {}
+    for s, a in torch.nonzero(frontier.tried).tolist():
+        if int(table[s, a]) != s:
+            into.setdefault(int(table[s, a]), set()).add(s)
+    dist = {int(t): 0 for t in torch.nonzero(targets).flatten()}
+    queue = deque(dist)
+    while queue:
+        x = queue.popleft()
+        for y in into.get(x, ()):
+            if y not in dist:
+                dist[y] = dist[x] + 1
+                queue.append(y)
+    return dist
+
+
+def test_exploration_hands_over_to_the_policy_when_nothing_is_left_to_try():
+    maze = _maze()
+    model = fully_explored_model(maze)
+    goal = torch.tensor([maze.goal_cell])
+    model.update(goal, torch.tensor([R]), goal, torch.zeros(1))  # G visited more: it is never S_ss here
+    ss = _controller(maze, model)
+    _start(ss, maze)
+    cell = maze.start_cell
+    while ss.active.any():
+        _, cell = _step(ss, maze, cell)
+    assert ss.exploring.tolist() == [True]
+    assert _step(ss, maze, cell)[0] == SENTINEL
+    assert ss.exploring.tolist() == [False]
+
+
+@pytest.mark.parametrize("after_goal", [True, False])
+def test_options_after_the_goal_was_reached(after_goal):
+    maze = _maze()
+    model = _hand_model(maze)
+    table = maze.transition_table()
+    # The corridor on to 5 is known (2 -> 3 and every move of 3 and 4), and G was reached once, from 5.
+    for cell, action in [(2, R)] + [(c, a) for c in (3, 4) for a in range(4)] + [(5, D)]:
+        nxt = int(table[cell, action])
+        model.update(torch.tensor([cell]), torch.tensor([action]), torch.tensor([nxt]), torch.tensor([nxt == 11.0]))
+    ss = _controller(maze, model, after_goal=after_goal)
+    _start(ss, maze)
+    # Visits: 5 was departed once, the fewest: the paper's UCB picks it, and it is the one frontier state (three
+    # untried moves) too. Whether the exploration phase follows arrival depends on the option.
+    assert ss.target.tolist() == [5]
+    cell = maze.start_cell
+    while ss.active.any():
+        _, cell = _step(ss, maze, cell)
+    assert cell == 5 and ss.exploring.tolist() == [after_goal]
+
+
+def test_unknown_option_is_refused():
+    maze = _maze()
+    with pytest.raises(ValueError, match="select='nearest'"):
+        _controller(maze, CountModel(maze.n_cells), select="nearest")
+
+
+# --- in the training loop --------------------------------------------------------------------------------------------
+def test_episodes_count_each_new_move_once_and_the_exploration_phase(tmp_path):
+    cfg = compose_cfg(
+        "+experiment=easy_small_ss_her_bounded", "smart_start.select=frontier", "smart_start.explore=frontier",
+        "env.max_steps=200", "trainer.total_env_steps=1500", "agent.learning_starts=10000",
+    )  # fmt: skip
+    trainer = Trainer(cfg, tmp_path)
+    collector, episodes = trainer.collector, []
+    while collector.env_steps < 1500:
+        batch, finished = collector.rollout()
+        nxt = batch["next"]
+        trainer.counts.update(batch["observation"], batch["action"], nxt["observation"], nxt["reward"])
+        episodes += finished
+    open_moves = [e.new_moves for e in episodes]
+    in_progress = int(collector.ep_new_moves.sum())
+    assert sum(open_moves) + in_progress == int((trainer.counts.sa_counts > 0).sum())
+    guided = [e for e in episodes if e.smart_start]
+    # S_ss is on the frontier (0 steps from it) while there is one; once none is left, -1.
+    frontier_steps = [e.ss_frontier_steps for e in guided]
+    assert 0 in frontier_steps and set(frontier_steps) <= {0, -1}
+    assert frontier_steps == sorted(frontier_steps, reverse=True)
+    assert sum(e.explore_steps for e in guided) > 0
+    assert all(e.new_moves_after_ss <= e.new_moves for e in guided)
