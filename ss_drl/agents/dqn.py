@@ -14,6 +14,7 @@ from torchrl.objectives.utils import distance_loss
 
 from ss_drl.agents.network import GoalQNetwork
 from ss_drl.agents.settings import DQNSettings
+from ss_drl.agents.tables import LazyAdam, LazyPolyak, clip_grad_norm, table_keys
 from ss_drl.agents.targets import TDTarget, make_td_target
 from ss_drl.envs.maze import Maze
 from ss_drl.ops import epsilon_greedy
@@ -50,6 +51,8 @@ class PolyakUpdate(SoftUpdate):
     """
 
     _pairs: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None
+    #: Keys of parameters left out (the per-cell tables under ``agent.sparse_tables``: :class:`LazyPolyak` steps them).
+    exclude: frozenset = frozenset()
 
     def step(self) -> None:
         if self._pairs is None:
@@ -57,6 +60,8 @@ class PolyakUpdate(SoftUpdate):
                 super().step()  # raises TorchRL's error
             targets, sources = [], []
             for key, source in self._sources.items(True, True):
+                if key in self.exclude:
+                    continue
                 key = (f"target_{key[0]}", *key[1:]) if isinstance(key, tuple) else f"target_{key}"
                 targets.append(self._targets.get(key).data)
                 sources.append(source.data)
@@ -99,10 +104,14 @@ class GoalDQNLoss(LossModule):
             # target parameters before that makes TorchRL warn that nobody will update them.
             warnings.filterwarnings("ignore", message="No target network updater", category=UserWarning)
             self.target_value_network = _BoundTarget(q_network, self.target_value_network_params)
+        #: Called with (obs, goal) before the target network reads them (LazyPolyak's catch-up), or None.
+        self.before_target_read = None
 
     def bootstrap(self, obs: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
         """(..., 1) the target network's value of (obs, goal): of the online network's greedy action (double DQN)
         or its own max."""
+        if self.before_target_read is not None:
+            self.before_target_read(obs, goal)
         q = self.target_value_network(obs, goal)
         if self.double_dqn:
             return q.gather(-1, self.value_network(obs, goal).argmax(-1, keepdim=True))
@@ -158,7 +167,7 @@ class DQNAgent:
         s = self.settings = settings
         self.maze = maze
         self.replay_buffer = replay_buffer
-        self.q_network = GoalQNetwork(maze, s.encoder, s.embed_dim, s.hidden, s.dueling)
+        self.q_network = GoalQNetwork(maze, s.encoder, s.embed_dim, s.hidden, s.dueling, s.sparse_tables)
         self.epsilon = float(s.eps_start)
         # The learner's reward is the env's minus this cost: 1 gives -1 per step and 0 on entering the goal.
         self.step_cost, self.gamma = s.step_cost, s.gamma
@@ -175,9 +184,34 @@ class DQNAgent:
             self.target_updater = HardUpdate(self.loss, value_network_update_interval=s.target_update_interval)
         else:
             self.target_updater = PolyakUpdate(self.loss, tau=s.tau)
-        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=s.lr, fused=True)
+        self.tables: LazyPolyak | None = None  # the per-cell tables' lazy Polyak step (sparse_tables)
+        self.table_optimizer: LazyAdam | None = None
+        params = list(self.loss.parameters())
+        if s.sparse_tables:
+            if s.target_update != "soft":
+                raise ValueError("agent.sparse_tables: needs agent.target_update=soft (its Polyak step is lazy)")
+            params = self._sparse_tables(params, s)
+        self.optimizer = torch.optim.Adam(params, lr=s.lr, fused=True)
         self.goal_cell = maze.goal_cell
         self.updates = 0
+
+    def _sparse_tables(self, params: list[torch.Tensor], s: DQNSettings) -> list[torch.Tensor]:
+        """Split the per-cell tables from ``params``: a lazy Adam for them, :class:`LazyPolyak` for their target
+        copies; returns the dense parameters."""
+        pairs, keys = [], []
+        for name, side in table_keys(self.q_network):
+            key = tuple(name.split("."))
+            online = self.loss.value_network_params.get(key)
+            pairs.append((online, self.loss.target_value_network_params.get(key).data, side))
+            keys.append(key)
+        if not pairs:
+            raise ValueError(f"agent.sparse_tables: the {s.encoder!r} encoder has no per-cell table")
+        tables = {p.data_ptr() for p, _, _ in pairs}
+        self.table_optimizer = LazyAdam([p for p, _, _ in pairs], lr=s.lr)
+        self.tables = LazyPolyak([(p.data, t, side) for p, t, side in pairs], s.tau)
+        self.target_updater.exclude = frozenset(("value_network_params", *key) for key in keys)
+        self.loss.before_target_read = lambda obs, goal: self.tables.catch_up({"state": obs, "goal": goal})
+        return [p for p in params if p.data_ptr() not in tables]
 
     # --- acting ------------------------------------------------------------------------------------------------
     @torch.no_grad()
@@ -202,6 +236,8 @@ class DQNAgent:
         over the last ~1/tau updates). Collection, the TD targets and Smart Start read the online and target
         networks either way, so the choice changes no training."""
         network = self.loss.target_value_network.network if self.settings.eval_network == "target" else self.q_network
+        if network is not self.q_network and self.tables is not None:
+            self.tables.catch_up()
         return self.env_scale(network.goal_q_values(states, goals))
 
     def env_scale(self, q: torch.Tensor) -> torch.Tensor:
@@ -244,15 +280,32 @@ class DQNAgent:
         out = self.loss(sample)
         loss = out.get("loss")
         self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        if self.settings.grad_clip > 0:
-            torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.settings.grad_clip, foreach=True)
-        self.optimizer.step()
-        self.target_updater.step()
+        if self.tables is None:
+            loss.backward()
+            if self.settings.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.settings.grad_clip, foreach=True)
+            self.optimizer.step()
+            self.target_updater.step()
+        else:
+            self.table_optimizer.zero_grad()
+            loss.backward()
+            if self.settings.grad_clip > 0:
+                clip_grad_norm(list(self.loss.parameters()), self.settings.grad_clip)
+            # The rows the batch touched: caught up before the optimizer moves them, then one Polyak step each.
+            touched = {side: online.grad.coalesce()._indices()[0] for online, (_, _, side) in self._table_params()}
+            self.tables.catch_up(touched)
+            self.optimizer.step()
+            self.table_optimizer.step()
+            self.target_updater.step()
+            self.tables.step(touched)
         self.updates += 1
         her_share = sample.get("relabeled").float().mean()
         goal_share = (sample.get("desired_goal") == self.goal_cell).float().mean()
         return torch.stack((loss.detach(), out.get("q_mean"), out.get("td_abs"), her_share, goal_share))
+
+    def _table_params(self):
+        """(online parameter, LazyPolyak pair) of each per-cell table."""
+        return zip(self.table_optimizer.params, self.tables.pairs)
 
     # --- persistence -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -263,6 +316,11 @@ class DQNAgent:
             "updates": self.updates,
             "target_counter": getattr(self.target_updater, "counter", 0),
             "replay_buffer": self.replay_buffer.state_dict(),
+            **(
+                {}
+                if self.tables is None
+                else {"table_optimizer": self.table_optimizer.state_dict(), "tables": self.tables.state_dict()}
+            ),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -273,3 +331,6 @@ class DQNAgent:
         if hasattr(self.target_updater, "counter"):
             self.target_updater.counter = state["target_counter"]
         self.replay_buffer.load_state_dict(state["replay_buffer"])
+        if self.tables is not None:
+            self.table_optimizer.load_state_dict(state["table_optimizer"])
+            self.tables.load_state_dict(state["tables"])

@@ -41,9 +41,11 @@ class CellEncoder(nn.Module):
     across neighbouring cells. ``hybrid``: the coords MLP plus a learned vector per cell that starts at zero, so the
     encoder begins as ``coords`` and each cell can then move away from its neighbours' code, as the two sides of a
     wall must (their distances to a goal can differ by a hundred steps).
+
+    ``sparse``: the per-cell table's gradient is sparse (``agent.sparse_tables``, :mod:`ss_drl.agents.tables`).
     """
 
-    def __init__(self, maze: Maze, kind: str, dim: int):
+    def __init__(self, maze: Maze, kind: str, dim: int, sparse: bool = False):
         super().__init__()
         if kind not in ENCODERS:
             raise ValueError(f"unknown encoder {kind!r} (allowed: {', '.join(ENCODERS)})")
@@ -51,12 +53,12 @@ class CellEncoder(nn.Module):
         self.width = maze.width
         self.cells = None  # hybrid's per-cell table
         if kind == "embedding":
-            self.net = nn.Embedding(maze.n_cells, dim)
+            self.net = nn.Embedding(maze.n_cells, dim, sparse=sparse)
             return
         self.register_buffer("scale", torch.tensor([max(maze.height - 1, 1), max(maze.width - 1, 1)]).float())
         self.net = nn.Sequential(nn.Linear(2, dim), nn.ReLU(), nn.Linear(dim, dim))
         if kind == "hybrid":
-            self.cells = nn.Embedding(maze.n_cells, dim)
+            self.cells = nn.Embedding(maze.n_cells, dim, sparse=sparse)
             nn.init.zeros_(self.cells.weight)
 
     def forward(self, cell: torch.Tensor) -> torch.Tensor:
@@ -82,10 +84,11 @@ class GoalQNetwork(nn.Module):
         embed_dim: int = 64,
         hidden: tuple = (256, 256),
         dueling: bool = True,
+        sparse_tables: bool = False,
     ):
         super().__init__()
-        self.state_encoder = CellEncoder(maze, encoder, embed_dim)
-        self.goal_encoder = CellEncoder(maze, encoder, embed_dim)
+        self.state_encoder = CellEncoder(maze, encoder, embed_dim, sparse_tables)
+        self.goal_encoder = CellEncoder(maze, encoder, embed_dim, sparse_tables)
         layers, width = [], 2 * embed_dim
         for size in hidden:
             layers += [nn.Linear(width, size), nn.ReLU()]

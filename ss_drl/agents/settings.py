@@ -47,6 +47,7 @@ class DQNSettings:
     train_freq: int
     gradient_steps: int
     grad_clip: float
+    sparse_tables: bool
     n_step: int
     clip_targets: bool
     # The bounds on the TD target (ss_drl/agents/targets.py).
