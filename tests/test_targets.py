@@ -447,3 +447,57 @@ def test_a_bound_the_user_set_explicitly_is_refused_instead():
     with pytest.raises(ValueError, match=r"^agent\.distance_ceiling=true: this environment breaks") as err:
         resolve_bounds(bounded_settings(), MAZE - {"grid_four_moves"}, explicit=["distance_ceiling"])
     assert len(str(err.value).splitlines()) == 1
+
+
+def test_successors_by_the_target_networks_max_skip_the_online_pass():
+    """``successor_double=False``: the window's states (6 x 3 rows here) take the online network's action, the model
+    targets' successors (6 x 4) the target network's own max; the bootstrap is asked for the split, by hand."""
+    target, batch = every_bound_binds()
+    target.successor_double = False
+    calls = []
+
+    def bootstrap(states, goals, double_rows=None):
+        calls.append((states.numel(), double_rows))
+        return V[states].unsqueeze(-1)
+
+    held = target.others(batch, torch.full((6, 4), -5.0), bootstrap)
+    assert calls == [(6 * 3 + 6 * 4, 6 * 3)]
+    assert held.tolist()[1] == [-10, -3, -5, -5]  # the successors' values as before: V is the bootstrap's
+
+
+def test_loss_bootstrap_splits_double_dqn_from_the_target_max():
+    """GoalDQNLoss.bootstrap with ``double_rows``: the first rows are valued at the online network's greedy action,
+    the rest at the target network's max, each checked against the two networks called directly."""
+    from ss_drl.agents.dqn import GoalDQNLoss
+
+    torch.manual_seed(0)
+    online = GoalQNetwork(CORRIDOR, "hybrid", 8, (16, 16))
+    loss = GoalDQNLoss(online, every_bound_binds()[0])
+    with torch.no_grad():
+        for p in loss.target_value_network_params.values(True, True):
+            p.add_(torch.randn_like(p) * 0.1)
+    states, goals = torch.tensor([0, 1, 4, 5, 6, 7]), torch.tensor([7, 7, 2, 2, 5, 5])
+    got = loss.bootstrap(states, goals, double_rows=2)
+    with torch.no_grad():
+        q_target = loss.target_value_network(states, goals)
+        greedy = online(states[:2], goals[:2]).argmax(-1, keepdim=True)
+    torch.testing.assert_close(got[:2], q_target[:2].gather(-1, greedy))
+    torch.testing.assert_close(got[2:], q_target[2:].amax(-1, keepdim=True))
+
+
+@pytest.mark.parametrize("encoder", ["hybrid", "embedding", "coords"])
+def test_factored_q_equals_the_forward_pass(encoder):
+    """The bootstrap's factored pass (encoders and first-layer halves once per distinct cell) gives the forward
+    pass's values to float tolerance, on rows that repeat states and goals, in the rows' shape."""
+    torch.manual_seed(0)
+    net = GoalQNetwork(CORRIDOR, encoder, 8, (16, 16))
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(torch.randn_like(p) * 0.3)
+    states = torch.tensor([[0, 1, 1], [4, 0, 7], [7, 7, 6]])
+    goals = torch.tensor([[2, 2, 2], [5, 5, 2], [1, 1, 1]])
+    with torch.no_grad():
+        want = net(states, goals)
+    got = net.factored_q(states, goals)
+    assert got.shape == want.shape == (3, 3, 4)
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)

@@ -92,9 +92,15 @@ class GoalDQNLoss(LossModule):
     target_value_network_params: TensorDictParams
 
     def __init__(
-        self, q_network: GoalQNetwork, td_target: TDTarget, double_dqn: bool = True, loss_function: str = "l2"
+        self,
+        q_network: GoalQNetwork,
+        td_target: TDTarget,
+        double_dqn: bool = True,
+        loss_function: str = "l2",
+        factored: bool = False,
     ):
         super().__init__()
+        self.factored = bool(factored)  # the bootstrap passes by GoalQNetwork.factored_q
         self.convert_to_functional(q_network, "value_network", create_target_params=True)
         self.td_target = td_target
         self.double_dqn = bool(double_dqn)
@@ -107,15 +113,26 @@ class GoalDQNLoss(LossModule):
         #: Called with (obs, goal) before the target network reads them (LazyPolyak's catch-up), or None.
         self.before_target_read = None
 
-    def bootstrap(self, obs: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+    def bootstrap(self, obs: torch.Tensor, goal: torch.Tensor, double_rows: int | None = None) -> torch.Tensor:
         """(..., 1) the target network's value of (obs, goal): of the online network's greedy action (double DQN)
-        or its own max."""
+        or its own max. ``double_rows``: only the first that many rows take the online network's action, the others
+        the target network's own max (``agent.successor_double_dqn: false``: no online pass for the model targets'
+        successors)."""
         if self.before_target_read is not None:
             self.before_target_read(obs, goal)
-        q = self.target_value_network(obs, goal)
-        if self.double_dqn:
-            return q.gather(-1, self.value_network(obs, goal).argmax(-1, keepdim=True))
-        return q.amax(-1, keepdim=True)
+        if self.factored:
+            q = self.target_value_network.network.factored_q(obs, goal)
+        else:
+            q = self.target_value_network(obs, goal)
+        if not self.double_dqn:
+            return q.amax(-1, keepdim=True)
+        if double_rows is None:
+            return q.gather(-1, self._online(obs, goal).argmax(-1, keepdim=True))
+        head = q[:double_rows].gather(-1, self._online(obs[:double_rows], goal[:double_rows]).argmax(-1, keepdim=True))
+        return torch.cat((head, q[double_rows:].amax(-1, keepdim=True)))
+
+    def _online(self, obs: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+        return self.value_network.factored_q(obs, goal) if self.factored else self.value_network(obs, goal)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         obs, goal = tensordict.get("observation"), tensordict.get("desired_goal")
@@ -179,7 +196,9 @@ class DQNAgent:
             raise ValueError("agent.hindsight_bound needs a replay buffer built with goal_steps=True")
         if "n_step_max" in td_target.names and not getattr(replay_buffer, "window_states", False):
             raise ValueError("agent.n_step_max needs a replay buffer built with window_states=True")
-        self.loss = GoalDQNLoss(self.q_network, td_target, double_dqn=s.double_dqn, loss_function=s.loss)
+        self.loss = GoalDQNLoss(
+            self.q_network, td_target, double_dqn=s.double_dqn, loss_function=s.loss, factored=s.factored_bootstrap
+        )
         if s.target_update == "hard":
             self.target_updater = HardUpdate(self.loss, value_network_update_interval=s.target_update_interval)
         else:

@@ -106,6 +106,29 @@ class GoalQNetwork(nn.Module):
         return self.value(h) + adv - adv.mean(dim=-1, keepdim=True)
 
     @torch.no_grad()
+    def factored_q(self, observation: torch.Tensor, desired_goal: torch.Tensor) -> torch.Tensor:
+        """``self(observation, desired_goal)`` for many rows without gradient (the TD target's bootstrap passes),
+        with the encoders and each half of the first layer computed once per distinct cell instead of once per row.
+
+        The first layer acts on ``concat(e_s, e_g)``: ``W [e_s; e_g] + b = W_s e_s + (W_g e_g + b)``. A bootstrap
+        batch holds each state and each goal many times (the window's states and the successors share the sample's
+        goal; neighbouring samples share states), so the state half is computed for the distinct states and the goal
+        half for the distinct goals, and each row adds the two. The same numbers as :meth:`forward` up to float
+        rounding (``agent.factored_bootstrap``).
+        """
+        states, s_row = torch.unique(observation.reshape(-1), return_inverse=True)
+        goals, g_row = torch.unique(desired_goal.reshape(-1), return_inverse=True)
+        first = self.trunk[0]
+        d_s = first.in_features // 2
+        h_s = F.linear(self.state_encoder(states), first.weight[:, :d_s])
+        h_g = F.linear(self.goal_encoder(goals), first.weight[:, d_s:], first.bias)
+        h = self.trunk[1:](h_s.index_select(0, s_row).add_(h_g.index_select(0, g_row)))
+        adv = self.advantage(h)
+        if self.dueling:
+            adv = self.value(h) + adv - adv.mean(dim=-1, keepdim=True)
+        return adv.view(*observation.shape, -1)
+
+    @torch.no_grad()
     def goal_q_values(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         """(B, n, A): Q(s||g, .) for every state in ``states`` (n,) and goal in ``goals`` (B,).
 

@@ -48,6 +48,8 @@ class DQNSettings:
     gradient_steps: int
     grad_clip: float
     sparse_tables: bool
+    factored_bootstrap: bool
+    successor_double_dqn: bool
     n_step: int
     clip_targets: bool
     # The bounds on the TD target (ss_drl/agents/targets.py).

@@ -62,8 +62,9 @@ ASSUMPTIONS = {
 #: What a Keulen maze (``env.preset`` / ``env.layout``) offers: every assumption holds.
 MAZE = frozenset(ASSUMPTIONS)
 
-#: A bootstrap: (states, goals) -> (..., 1) the target network's value of the online network's greedy action.
-Bootstrap = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+#: A bootstrap: (states, goals) -> (..., 1) the target network's value of the online network's greedy action; with
+#: ``double_rows=n``, of the online network's greedy action for the first n rows and its own max for the others.
+Bootstrap = Callable[..., torch.Tensor]
 
 
 def discounted_steps(steps: torch.Tensor, gamma: float) -> torch.Tensor:
@@ -418,7 +419,9 @@ class TDTarget:
     targets' successors) goes through one call of the bootstrap, so one batched pass of the target network and one
     of the online network (double DQN) per update. ``fused=False`` makes the model targets' successors a call of
     their own, as before issue 49: the same numbers to float rounding (a matrix product's sums can round
-    differently with the batch's size), and exactly the arithmetic of 7ac5009.
+    differently with the batch's size), and exactly the arithmetic of 7ac5009. ``successor_double=False`` values the
+    successors by the target network's own max, so that the online network's pass covers the window's states only
+    (``agent.successor_double_dqn``).
     """
 
     def __init__(
@@ -428,8 +431,10 @@ class TDTarget:
         model_targets: ModelTargets | None = None,
         value_range: tuple[float, float] | None = None,
         fused: bool = True,
+        successor_double: bool = True,
     ):
         self.scale = scale
+        self.successor_double = bool(successor_double)
         self.bounds = tuple(bounds)
         self.model_targets = model_targets
         self.value_range = value_range
@@ -467,12 +472,15 @@ class TDTarget:
             values, succ_values = bootstrap(states.flatten(), goals.flatten()).view(states.shape), None
         elif self.fused:
             succ_goals = sample.get("desired_goal").unsqueeze(1).expand_as(succ)
-            out = bootstrap(
+            both = (
                 torch.cat((states.flatten(), succ.clamp(min=0).flatten())),
                 torch.cat((goals.flatten(), succ_goals.flatten())),
             )
+            out = bootstrap(*both) if self.successor_double else bootstrap(*both, double_rows=states.numel())
             values, succ_values = out[: states.numel()].view(states.shape), out[states.numel() :].view(succ.shape)
         else:
+            if not self.successor_double:
+                raise ValueError("successor_double=False needs the fused pass")
             values = bootstrap(states.flatten(), goals.flatten()).view(states.shape)
             succ_goals = sample.get("desired_goal").unsqueeze(1).expand_as(succ)
             succ_values = bootstrap(succ.clamp(min=0).flatten(), succ_goals.flatten()).view(succ.shape)
@@ -573,4 +581,4 @@ def make_td_target(
     if ceiling is not None:
         bounds.append(ceiling)
     model = ModelTargets(counts, scale) if settings.model_targets else None
-    return TDTarget(scale, bounds, model, value_range, fused)
+    return TDTarget(scale, bounds, model, value_range, fused, settings.successor_double_dqn)
