@@ -77,6 +77,14 @@ def build_parser() -> argparse.ArgumentParser:
         "compared with SB3 when it is a replay-only dqn_her",
     )
     parser.add_argument(
+        "--override",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a Hydra override for the timed experiment's runs in the train section (repeatable), e.g. "
+        "--override agent.sparse_tables=true; the baseline runs as it is",
+    )
+    parser.add_argument(
         "--baseline-checkout",
         default=None,
         metavar="PATH",
@@ -132,6 +140,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     train_options = {}
     if args.experiment is not None:
         train_options["experiments"] = (args.experiment,)
+    if args.override:
+        if "train" not in sections:
+            parser.error("--override applies to the train section")
+        bad = [o for o in args.override if "=" not in o]
+        if bad:
+            parser.error(f"--override: {bad[0]!r} is not KEY=VALUE")
+        train_options["overrides"] = tuple(args.override)
     if args.baseline_checkout is not None:
         if "train" not in sections:
             parser.error("--baseline-checkout applies to the train section")

@@ -197,41 +197,61 @@ def checkout_package(checkout: str | Path) -> str:
     return str(path)
 
 
-def run_bare_update(agent_cfg, updates: int, seed: int = 0) -> dict:
-    """The ceiling of an eager-PyTorch trainer: updates/s of a bare DQN update in SB3's form, on SB3's network.
+#: The bare-update rows of the train section.
+BARE_SB3 = "bare PyTorch update of SB3's network (no env, no buffer, no TorchRL): the eager-PyTorch ceiling"
+BARE_OWN = (
+    "bare PyTorch update of this experiment's network (GoalQNetwork; no env, no buffer, no TorchRL, no bounds): "
+    "the trainer's own ceiling"
+)
 
-    SB3's Q-network for this env (the 6 coordinates of state, achieved and desired goal -> MLP of the agent's hidden
-    widths -> 4 values: the least arithmetic at this width), a plain ``max_a Q'`` target from a copy, the same batch
-    size, Adam and gradient clipping; the batches are made up in advance. No env, no replay buffer, no TorchRL or
-    tensordict: only the PyTorch arithmetic that every update of either library runs. At the update-to-data ratio
-    compared, no trainer built on eager PyTorch can step the env faster than this rate allows on this machine.
+
+def run_bare_update(agent_cfg, updates: int, seed: int = 0, maze: str | None = None) -> dict:
+    """The ceiling of an eager-PyTorch trainer: updates/s of a bare DQN update, batches made up in advance.
+
+    Without ``maze``: on SB3's Q-network for this env (the 6 coordinates of state, achieved and desired goal -> MLP
+    of the agent's hidden widths -> 4 values: the least arithmetic at this width). With ``maze`` (a preset): on the
+    experiment's own :class:`~ss_drl.agents.network.GoalQNetwork` (its encoder, embedding size, widths and dueling
+    head) over that maze's cells, so the row shows how close the trainer is to its own network's ceiling. Either
+    way a plain ``max_a Q'`` target from a copy, the same batch size, Adam and gradient clipping: no env, no replay
+    buffer, no TorchRL or tensordict, no bounds; only the PyTorch arithmetic of one forward and backward pass on
+    the batch and one target pass.
     """
     import copy
 
     torch.manual_seed(seed)
-    layers, width = [], 6
-    for size in agent_cfg.hidden:
-        layers += [torch.nn.Linear(width, int(size)), torch.nn.ReLU()]
-        width = int(size)
-    net = torch.nn.Sequential(*layers, torch.nn.Linear(width, 4))
+    size = int(agent_cfg.batch_size)
+    if maze is None:
+        layers, width = [], 6
+        for hidden in agent_cfg.hidden:
+            layers += [torch.nn.Linear(width, int(hidden)), torch.nn.ReLU()]
+            width = int(hidden)
+        net = torch.nn.Sequential(*layers, torch.nn.Linear(width, 4))
+
+        def inputs():
+            return (torch.rand(size, 6),)
+    else:
+        from ss_drl.agents.network import GoalQNetwork
+        from ss_drl.envs.maze import load_maze
+
+        layout = load_maze(maze)
+        hidden = tuple(int(h) for h in agent_cfg.hidden)
+        net = GoalQNetwork(layout, agent_cfg.encoder, int(agent_cfg.embed_dim), hidden, bool(agent_cfg.dueling))
+
+        def inputs():
+            return (torch.randint(0, layout.n_cells, (size,)), torch.randint(0, layout.n_cells, (size,)))
+
     target = copy.deepcopy(net).requires_grad_(False)
     optimizer = torch.optim.Adam(net.parameters(), lr=float(agent_cfg.lr), fused=True)
-    gamma, clip, size = float(agent_cfg.gamma), float(agent_cfg.grad_clip), int(agent_cfg.batch_size)
+    gamma, clip = float(agent_cfg.gamma), float(agent_cfg.grad_clip)
     batches = [
-        (
-            torch.rand(size, 6),
-            torch.randint(0, 4, (size, 1)),
-            torch.rand(size, 6),
-            torch.rand(size, 1),
-            torch.rand(size, 1) < 0.1,
-        )
+        (inputs(), torch.randint(0, 4, (size, 1)), inputs(), torch.rand(size, 1), torch.rand(size, 1) < 0.1)
         for _ in range(min(updates, 64))
     ]
 
     def update(obs, action, next_obs, reward, terminated) -> None:
-        pred = net(obs).gather(-1, action)
+        pred = net(*obs).gather(-1, action)
         with torch.no_grad():
-            td_target = reward + gamma * (~terminated).float() * target(next_obs).amax(-1, keepdim=True)
+            td_target = reward + gamma * (~terminated).float() * target(*next_obs).amax(-1, keepdim=True)
         loss = torch.nn.functional.mse_loss(pred, td_target)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -321,6 +341,7 @@ def bench_train(
     env_id: str | None = None,
     baseline_checkout: str | Path | None = None,
     command: str | None = None,
+    overrides: Sequence[str] = (),
 ) -> str:
     """Training throughput of ss-drl vs SB3 DQN + HER on the same maze and settings (median of repeats), and of
     ss-drl vs an older checkout of itself (``baseline_checkout``).
@@ -333,11 +354,13 @@ def bench_train(
     module's docstring). ``max_steps``/``learning_starts`` default to the experiment's ``env.max_steps`` and
     ``max(agent.learning_starts, env.max_steps)``: SB3's ``HerReplayBuffer`` cannot sample before the first episode
     has ended, which is only certain after ``max_steps`` env steps. ``command`` (the command line) heads the section.
+    ``overrides`` (Hydra overrides) apply to the timed experiment's own runs, not to the baseline's.
     """
     from ss_drl.methods import method_label
 
     experiment = experiments[0]
-    base = compose_config([f"+experiment={experiment}"])
+    overrides = tuple(overrides)
+    base = compose_config([f"+experiment={experiment}", *overrides])
     baseline = None
     if baseline_checkout is not None:
         baseline_checkout = Path(baseline_checkout).resolve()
@@ -362,6 +385,8 @@ def bench_train(
         f"steps after learning_starts={learning_starts}; torch threads {torch.get_num_threads()})",
         "",
     ]
+    if overrides:
+        out += [f"Overrides of `{experiment}`'s runs: `{' '.join(overrides)}`", ""]
     if command:
         out += [f"`$ {command}`", ""]
     have_sb3 = include_sb3 and mirror and sb3_available()
@@ -390,9 +415,10 @@ def bench_train(
         warm = dict(kwargs, learning_starts=min(learning_starts, 40))
         run_sb3(env_id, warm, min(steps, 40), min(learning_starts, 40), max_steps=min(max_steps, 40))
     bare: list[dict] = []
+    bare_own: list[dict] = []
     # Interleaved (ours, baseline, ours, baseline, ...), so that drifting load on a shared machine hits every run alike.
     for _ in range(repeats):
-        runs[experiment].append(run_ssdrl(experiment, steps, learning_starts, max_steps))
+        runs[experiment].append(run_ssdrl(experiment, steps, learning_starts, max_steps, overrides=overrides))
         if baseline:
             runs[base_key].append(
                 run_ssdrl(
@@ -407,6 +433,7 @@ def bench_train(
             runs[name].append(run_ssdrl(name, steps, learning_starts, max_steps))
         if deep:
             bare.append(run_bare_update(agent, steps))
+            bare_own.append(run_bare_update(agent, steps, maze=base.env.preset))
 
     def row(label: str, framework: str, results: list[dict]) -> list:
         m = {key: median([r[key] for r in results]) for key in ("steps_per_s", "updates_per_s", "whole_steps_per_s")}
@@ -432,18 +459,21 @@ def bench_train(
     if deep:
         # At train_freq env steps per gradient_steps updates, the bare update rate bounds the env steps/s.
         steps_per_update = int(agent.train_freq) / int(agent.gradient_steps)
-        bare_rate = median([r["updates_per_s"] for r in bare])
-        rows.append(
-            [
-                "bare PyTorch update of SB3's network (no env, no buffer, no TorchRL): the eager-PyTorch ceiling",
-                f"torch {torch.__version__}",
-                "-",
-                steps,
-                fmt_rate(bare_rate * steps_per_update),
-                f"{bare_rate:.1f}",
-                "-",
-            ]
-        )
+        bare_rates = {label: median([r["updates_per_s"] for r in results]) for label, results in
+                      ((BARE_SB3, bare), (BARE_OWN, bare_own))}  # fmt: skip
+        bare_rate = bare_rates[BARE_SB3]
+        for label, rate in bare_rates.items():
+            rows.append(
+                [
+                    label,
+                    f"torch {torch.__version__}",
+                    "-",
+                    steps,
+                    fmt_rate(rate * steps_per_update),
+                    f"{rate:.1f}",
+                    "-",
+                ]
+            )
     headers = [
         "run",
         "framework",
@@ -470,6 +500,10 @@ def bench_train(
             "budget, seed, learning_starts and timing; every run is a subprocess `python scripts/train.py` of its "
             "checkout, the two interleaved"
         )
+    if deep:
+        own = bare_rates[BARE_OWN] * steps_per_update
+        out.append(f"- ours/own ceiling (train-phase env steps/s against the bare update of its network): "
+                   f"**{ours / own:.2f}**")  # fmt: skip
     if have_sb3:
         same_form = median([r["steps_per_s"] for r in runs[form_key]])
         theirs = median([r["steps_per_s"] for r in runs["sb3"]])

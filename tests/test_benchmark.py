@@ -287,7 +287,8 @@ def train_quick() -> str:
 
 
 SB3_FORM_RUN = "`easy_dqn_her` in SB3's form"
-BARE_RUN = "bare PyTorch update of SB3's network (no env, no buffer, no TorchRL): the eager-PyTorch ceiling"
+BARE_RUN = train.BARE_SB3
+BARE_OWN_RUN = train.BARE_OWN
 
 
 def _train_rows(text: str) -> tuple[dict[str, dict[str, str]], list[dict[str, str]]]:
@@ -314,10 +315,15 @@ def test_train_section_quick(train_quick):
         assert 0 < int(row["updates"]) <= (timed + fpb) * per_step
         for key in ("train-phase env steps/s", "updates/s", "whole-run env steps/s"):
             assert number(row[key]) > 0
-    bare = rows[BARE_RUN]
-    assert bare["updates"] == str(steps)
-    # At train_freq env steps per gradient_steps updates, the ceiling's env steps/s is its updates/s / per_step.
-    assert_quotient(bare["train-phase env steps/s"], bare["updates/s"], str(per_step))
+    for name in (BARE_RUN, BARE_OWN_RUN):
+        bare = rows[name]
+        assert bare["updates"] == str(steps)
+        # At train_freq env steps per gradient_steps updates, the ceiling's env steps/s is its updates/s / per_step.
+        assert_quotient(bare["train-phase env steps/s"], bare["updates/s"], str(per_step))
+    # The trainer's own network costs more per update than SB3's small MLP over 6 numbers.
+    assert number(rows[BARE_OWN_RUN]["updates/s"]) < number(rows[BARE_RUN]["updates/s"])
+    ratio = bullet(train_quick, r"^- ours/own ceiling \(.*\): \*\*([0-9.]+)\*\*$")[1]
+    assert 0 < float(ratio) < 1
     settings = {row[""]: row for row in parity}
     assert settings["env"]["ss-drl"] == f"`BatchedMazeEnv('easy', 1, max_steps={max_steps})`"
     assert settings["learning_starts"]["ss-drl"] == str(learning_starts)
@@ -480,6 +486,17 @@ def test_cli_threads_option_and_bad_numbers(capsys):
             cli.main(["--section", "her", option, "0"])
         assert exc.value.code != 0
         assert capsys.readouterr().err.splitlines()[-1].endswith(f"error: {option} must be >= 1, got 0")
+
+
+def test_cli_override_is_checked_before_any_run(capsys):
+    for argv, message in (
+        (["--section", "train", "--override", "agent.lr"], "error: --override: 'agent.lr' is not KEY=VALUE"),
+        (["--section", "her", "--override", "agent.lr=0.1"], "error: --override applies to the train section"),
+    ):
+        with pytest.raises(SystemExit) as exc:
+            cli.main(argv)
+        assert exc.value.code != 0
+        assert capsys.readouterr().err.splitlines()[-1].endswith(message)
 
 
 def test_script_runs_from_the_checkout(tmp_path):
