@@ -11,7 +11,10 @@ The rows, named by the stages of ``docs/ablations.md`` (the lab notebook is ``do
 * **dqn_bounded, TorchRL SoftUpdate**: the model-bounded DQN once more, its target network stepped by TorchRL's
   ``SoftUpdate`` instead of ss-drl's ``PolyakUpdate`` (the same arithmetic; what the fused lerp saves);
 * **dqn_bounded, separate passes**: the model-bounded DQN with its model targets' successors bootstrapped in passes
-  of their own, as at 7ac5009 (``TDTarget(fused=False)``; what one batched pass per network saves).
+  of their own, as at 7ac5009 (``TDTarget(fused=False)``; what one batched pass per network saves);
+* **dqn_bounded, per-row options**: the model-bounded DQN with the options that change its arithmetic to cut the
+  work per update (:data:`PER_ROW_OPTIONS`: the factored bootstrap, successors by the target network's max, sparse
+  per-cell tables), each off by default.
 
 The learners' rows are composed from the ``agent`` group (:data:`LEARNERS`), so they follow ``conf/agent/*.yaml``;
 J is ``agent=dqn`` with each switch that is on there turned off. The "bounds on" column lists the switches on in the
@@ -39,8 +42,11 @@ REFERENCE = ("J", "J")
 SOFT_UPDATE = "dqn_bounded, TorchRL SoftUpdate"
 #: The model-bounded DQN with the model targets' successors in passes of their own (``TDTarget(fused=False)``).
 SEPARATE = "dqn_bounded, separate passes"
+#: The model-bounded DQN with the options that cut the work per update.
+PER_ROW = "dqn_bounded, per-row options"
+PER_ROW_OPTIONS = ("agent.factored_bootstrap=true", "agent.successor_double_dqn=false", "agent.sparse_tables=true")
 #: The rows that re-time the model-bounded DQN with one part changed.
-VARIANTS = (SOFT_UPDATE, SEPARATE)
+VARIANTS = (SOFT_UPDATE, SEPARATE, PER_ROW)
 
 
 def switches_on(settings) -> list[str]:
@@ -114,7 +120,8 @@ def bench_update(
     settings = setting_overrides(maze)
     bounded = settings[-1]
     agents, stages = {}, {}
-    for name, stage, overrides in (*settings, *((variant, bounded[1], bounded[2]) for variant in VARIANTS)):
+    variants = [(v, bounded[1], bounded[2] + (PER_ROW_OPTIONS if v == PER_ROW else ())) for v in VARIANTS]
+    for name, stage, overrides in (*settings, *variants):
         cfg = compose_config([f"+experiment={maze}_ss_her", *overrides])
         counts = CountModel(layout.n_cells)
         counts.update(data["observation"], data["action"], data["next", "observation"], data["next", "reward"])
@@ -141,6 +148,8 @@ def bench_update(
     for name, agent in agents.items():
         ms = median(times[name])
         on = "as " + bounded[0] if name in VARIANTS else ", ".join(switches_on(agent.settings)) or "none"
+        if name == PER_ROW:
+            on += ", " + " ".join(PER_ROW_OPTIONS)
         rows.append([name, stages[name], on, fmt_ms(ms), f"{ms / base:.2f}x"])
     batch = agents[reference].settings.batch_size
     return "\n".join(

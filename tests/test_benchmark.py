@@ -216,7 +216,7 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
     (rows,) = tables(text)
     groups = {name: group for name, group, _ in update.LEARNERS}
     assert set(groups.values()) == {"dqn", "dqn_bounded"}  # the two learners, each from its agent group
-    assert [row["setting"] for row in rows] == ["J", *groups, update.SOFT_UPDATE, update.SEPARATE]
+    assert [row["setting"] for row in rows] == ["J", *groups, update.SOFT_UPDATE, update.SEPARATE, update.PER_ROW]
     learners = {name: _learner_settings(sizes["maze"], group) for name, group in groups.items()}
     replay_only = next(learners[n] for n, g in groups.items() if g == "dqn")
     bounded_name = next(n for n, g in groups.items() if g == "dqn_bounded")
@@ -227,10 +227,17 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
         **{name: (settings, "PolyakUpdate", True) for name, settings in learners.items()},
         update.SOFT_UPDATE: (learners[bounded_name], "SoftUpdate", True),
         update.SEPARATE: (learners[bounded_name], "PolyakUpdate", False),
+        update.PER_ROW: (
+            dataclasses.replace(
+                learners[bounded_name], factored_bootstrap=True, successor_double_dqn=False, sparse_tables=True
+            ),
+            "PolyakUpdate",
+            True,
+        ),
     }
     assert len(set(expected.values())) == len(rows)  # every row a distinct agent
     stages = {"J": update.REFERENCE[1], **{name: stage for name, _, stage in update.LEARNERS}}
-    stages[update.SOFT_UPDATE] = stages[update.SEPARATE] = stages[bounded_name]
+    stages[update.SOFT_UPDATE] = stages[update.SEPARATE] = stages[update.PER_ROW] = stages[bounded_name]
     names = {}
     for row in rows:
         settings, updater, fused = expected[row["setting"]]
@@ -238,7 +245,9 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
         assert len(mine) == 5 + repeats * sizes["updates"], row
         names[row["setting"]] = mine[0][1]
         on = {key for key in SWITCHES if getattr(settings, key)}
-        if row["setting"] in update.VARIANTS:
+        if row["setting"] == update.PER_ROW:
+            assert row["bounds on"] == f"as {bounded_name}, " + " ".join(update.PER_ROW_OPTIONS)
+        elif row["setting"] in update.VARIANTS:
             assert row["bounds on"] == f"as {bounded_name}"
         else:
             assert (set() if row["bounds on"] == "none" else set(row["bounds on"].split(", "))) == on
