@@ -424,22 +424,30 @@ def test_every_bound_holds_on_a_keulen_maze():
     assert resolved == settings and lines == []
 
 
-def test_a_bound_whose_assumption_breaks_is_turned_off_with_one_line_each():
+def _turned_off(line: str) -> set[str]:
+    """The switches one line of :func:`resolve_bounds` names: ``turned off, since ... (why): agent.a, agent.b``."""
+    assert line.startswith("turned off, since this environment breaks what they assume (")
+    return set(line.rsplit("): ", 1)[1].split(", "))
+
+
+def test_bounds_whose_assumption_breaks_are_turned_off_in_one_line():
     """Without deterministic moves every bound of the model-bounded learner goes (each assumes them); without the
-    grid's four moves only the ceiling and what leans on it."""
+    grid's four moves only the ceiling and what leans on it. One line names them all, and why."""
     settings = bounded_settings()
     stochastic, lines = resolve_bounds(settings, MAZE - {"deterministic"})
     on = ("hindsight_bound", "distance_floor", "distance_ceiling", "bound_all_actions", "model_targets")
     assert not any(getattr(stochastic, key) for key in (*on, "optimistic_floor"))
-    assert len(lines) == 6 and all(len(line.splitlines()) == 1 and "deterministic moves" in line for line in lines)
-    assert {line.split()[0] for line in lines} == {f"agent.{key}" for key in (*on, "optimistic_floor")}
+    assert len(lines) == 1 and len(lines[0].splitlines()) == 1 and "deterministic moves" in lines[0]
+    assert _turned_off(lines[0]) == {f"agent.{key}" for key in (*on, "optimistic_floor")}
     gridless, lines = resolve_bounds(settings, MAZE - {"grid_four_moves"})
     assert (gridless.distance_ceiling, gridless.optimistic_floor) == (False, False)
     assert gridless.distance_floor and gridless.model_targets and gridless.hindsight_bound
-    assert sorted(line.split()[0] for line in lines) == ["agent.distance_ceiling", "agent.optimistic_floor"]
+    assert len(lines) == 1 and _turned_off(lines[0]) == {"agent.distance_ceiling", "agent.optimistic_floor"}
+    assert resolve_bounds(settings, MAZE) == (settings, [])
     replay_only = DQNSettings.from_config(compose_cfg("+experiment=easy_ss_her").agent)
     off, lines = resolve_bounds(replay_only, MAZE - {"deterministic"})
-    assert (off.hindsight_bound, off.n_step_max) == (False, False) and len(lines) == 2
+    assert (off.hindsight_bound, off.n_step_max) == (False, False)
+    assert _turned_off(lines[0]) == {"agent.hindsight_bound", "agent.n_step_max"}
     assert dataclasses.replace(off, hindsight_bound=True, n_step_max=True) == replay_only
 
 

@@ -61,6 +61,15 @@ ASSUMPTIONS = {
 
 #: What a Keulen maze (``env.preset`` / ``env.layout``) offers: every assumption holds.
 MAZE = frozenset(ASSUMPTIONS)
+#: What a maze with stochastic moves (``env.slip > 0``) offers: everything but deterministic moves.
+STOCHASTIC_MAZE = MAZE - {"deterministic"}
+
+
+def environment_assumptions(env_cfg) -> frozenset[str]:
+    """The assumptions an ``env`` config node's environment meets: :data:`MAZE`, or :data:`STOCHASTIC_MAZE` when
+    its moves slip (``env.slip > 0``)."""
+    return STOCHASTIC_MAZE if float(env_cfg.get("slip", 0) or 0) > 0 else MAZE
+
 
 #: A bootstrap: (states, goals) -> (..., 1) the target network's value of the online network's greedy action; with
 #: ``double_rows=n``, of the online network's greedy action for the first n rows and its own max for the others.
@@ -543,20 +552,27 @@ def assumptions(settings) -> dict[str, frozenset[str]]:
 
 
 def resolve_bounds(settings, holds: frozenset[str], explicit: Sequence[str] = ()):
-    """The settings with every switch whose assumption the environment breaks turned off, and one line per switch
-    turned off. ``holds``: the assumptions the environment meets (:data:`MAZE` for a Keulen maze). ``explicit``:
-    the agent keys the user set on the command line; such a switch is refused (``ValueError``) instead."""
-    off, lines = {}, []
+    """The settings with every switch whose assumption the environment breaks turned off, and the line that says so
+    (none when nothing is turned off). ``holds``: the assumptions the environment meets (:data:`MAZE` for a Keulen
+    maze). ``explicit``: the agent keys the user set on the command line; such a switch is refused (``ValueError``)
+    instead."""
+    off, broken_all = {}, set()
     for key, needs in assumptions(settings).items():
         broken = sorted(needs - holds)
         if not broken:
             continue
-        why = "; ".join(ASSUMPTIONS[b] for b in broken)
         if key in explicit:
+            why = "; ".join(ASSUMPTIONS[b] for b in broken)
             raise ValueError(f"agent.{key}=true: this environment breaks what it assumes ({why})")
         off[key] = False
-        lines.append(f"agent.{key} turned off: this environment breaks what it assumes ({why})")
-    return dataclasses.replace(settings, **off), lines
+        broken_all.update(broken)
+    if not off:
+        return settings, []
+    why = "; ".join(ASSUMPTIONS[b] for b in sorted(broken_all))
+    line = f"turned off, since this environment breaks what they assume ({why}): " + ", ".join(
+        f"agent.{key}" for key in off
+    )
+    return dataclasses.replace(settings, **off), [line]
 
 
 def make_td_target(

@@ -9,6 +9,11 @@ model and the replay buffer use; ``env.maze.pos(cell)`` turns one back into (row
     ``observation``   the agent's cell; it is also the achieved goal
     ``desired_goal``  the goal's cell
 Each copy's step counter (for truncation at ``max_steps``) is env state, readable as ``env.step_count``.
+
+With ``slip > 0`` moves are stochastic (``env.slip``): at each step and in each copy, with probability ``slip`` the
+action taken is replaced by one of the four actions drawn uniformly (so the chosen move happens with probability
+``1 - slip + slip / 4``). The draws come from the env's own generator (seeded by ``seed`` or ``set_seed``; its state is
+``rng_state()``, saved in checkpoints); with ``slip == 0`` nothing is drawn.
 """
 
 from __future__ import annotations
@@ -26,7 +31,17 @@ from ss_drl.envs.maze import Maze, goal_reward, load_maze
 class BatchedMazeEnv(EnvBase):
     """N copies of a maze, stepped at once. Same semantics as :class:`ss_drl.envs.gridworld.MazeEnv`."""
 
-    def __init__(self, layout: str | Path | Maze = "easy", num_envs: int = 1, max_steps: int = 1000, device="cpu"):
+    def __init__(
+        self,
+        layout: str | Path | Maze = "easy",
+        num_envs: int = 1,
+        max_steps: int = 1000,
+        device="cpu",
+        slip: float = 0.0,
+        seed: int = 0,
+    ):
+        if not 0.0 <= float(slip) <= 1.0:
+            raise ValueError(f"slip must be in [0, 1] (got {slip})")
         if int(num_envs) < 1:
             raise ValueError(f"num_envs must be >= 1 (got {num_envs})")
         if int(max_steps) < 1:
@@ -35,6 +50,8 @@ class BatchedMazeEnv(EnvBase):
         self.maze = layout if isinstance(layout, Maze) else load_maze(layout)
         self.num_envs = int(num_envs)
         self.max_steps = int(max_steps)
+        self.slip = float(slip)
+        self.generator = torch.Generator(device=device).manual_seed(int(seed))  # the slips' draws
         self.width = self.maze.width
         n = self.num_envs
         self.next_cell = torch.as_tensor(self.maze.transition_table(), device=self.device)
@@ -87,8 +104,13 @@ class BatchedMazeEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         state = self._state
+        action = tensordict.get("action").reshape(self.num_envs)
+        if self.slip > 0:
+            slipped = torch.rand(self.num_envs, generator=self.generator, device=self.device) < self.slip
+            drawn = torch.randint(0, 4, (self.num_envs,), generator=self.generator, device=self.device)
+            action = torch.where(slipped, drawn, action)
         # A new tensor each step (never updated in place), so earlier observations stay valid.
-        cell = state["cell"] = self.next_cell[state["cell"], tensordict.get("action").reshape(self.num_envs)]
+        cell = state["cell"] = self.next_cell[state["cell"], action]
         steps = state["steps"]
         steps += 1
         terminated = goal_reward(cell, self._goal_cell).unsqueeze(-1)
@@ -108,6 +130,13 @@ class BatchedMazeEnv(EnvBase):
         self._state["cell"] = cell.clone().to(self.device)
         self._state["steps"] = steps.clone().to(self.device)
 
+    def rng_state(self) -> torch.Tensor:
+        """The slips' generator state (for checkpoints)."""
+        return self.generator.get_state()
+
+    def set_rng_state(self, state: torch.Tensor) -> None:
+        self.generator.set_state(state)
+
     def _set_seed(self, seed: int | None) -> None:
-        # The dynamics and the start state are deterministic: there is nothing to seed.
-        return None
+        # Only the slips are random (the start state is fixed).
+        self.generator.manual_seed(0 if seed is None else int(seed))

@@ -27,6 +27,9 @@ class MazeEnv(gym.Env):
     still costs a step. Reward 1.0 and ``terminated=True`` on entering G, else 0.0; ``truncated=True`` after
     ``max_steps`` steps. Observations are ``{"observation", "achieved_goal", "desired_goal"}``, each a (row, col)
     int64 array of shape (2,).
+
+    ``slip``: with this probability the action taken is replaced by one of the four actions drawn uniformly (the
+    batched env's convention; the draws come from ``self.np_random``, seeded by ``reset(seed=...)``).
     """
 
     metadata = {"render_modes": ["ansi", "rgb_array"], "render_fps": 10}
@@ -37,8 +40,12 @@ class MazeEnv(gym.Env):
         max_steps: int = 1000,
         render_mode: str | None = None,
         cell_pixels: int = 8,
+        slip: float = 0.0,
     ):
         self.maze = layout if isinstance(layout, Maze) else load_maze(layout)
+        if not 0.0 <= float(slip) <= 1.0:
+            raise ValueError(f"slip must be in [0, 1] (got {slip})")
+        self.slip = float(slip)
         if int(max_steps) < 1:
             raise ValueError(f"max_steps must be >= 1 (got {max_steps})")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -85,7 +92,10 @@ class MazeEnv(gym.Env):
     def step(self, action):
         if not self.action_space.contains(action):
             raise ValueError(f"invalid action {action!r}: must be an int in [0, 4)")
-        self._pos = self.maze.move(self._pos, int(action))
+        action = int(action)
+        if self.slip > 0 and self.np_random.random() < self.slip:
+            action = int(self.np_random.integers(4))
+        self._pos = self.maze.move(self._pos, action)
         self._steps += 1
         obs = self._obs()
         terminated = bool(self.compute_terminated(obs["achieved_goal"], obs["desired_goal"], None))

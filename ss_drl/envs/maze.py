@@ -23,6 +23,14 @@ WALL, FREE, START, GOAL = "#", ".", "S", "G"
 ACTIONS: tuple[tuple[int, int], ...] = ((0, 1), (1, 0), (0, -1), (-1, 0))
 
 
+def action_probabilities(slip: float) -> np.ndarray:
+    """(A, A): row a holds the probability that each action is taken when a is chosen, under ``env.slip``: with
+    probability ``slip`` the action is replaced by one of the four drawn uniformly, so ``(1 - slip) [a == b] +
+    slip / 4``. With the transition table, ``P(s' | s, a) = sum_b p[a, b] [table[s, b] == s']``."""
+    n = len(ACTIONS)
+    return (1.0 - slip) * np.eye(n) + slip / n
+
+
 def goal_reward(achieved, goal):
     """The reward rule, written once: 1 for entering the goal, 0 otherwise (a bool tensor, or bool, of where
     ``achieved == goal``; callers cast). The env's reward for G, HER's reward for a relabeled goal and the count

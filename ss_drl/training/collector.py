@@ -220,6 +220,7 @@ class MazeCollector:
             "td": None if self._td is None else self._td.select("observation", "desired_goal").clone(),
             "env_cell": self.env.cell.clone(),
             "env_steps_in_episode": self.env.step_count.clone(),
+            "env_rng": self.env.rng_state(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -233,3 +234,5 @@ class MazeCollector:
         self.starting = state["starting"].clone()
         self._td = state["td"]
         self.env.set_state(state["env_cell"], state["env_steps_in_episode"])
+        if "env_rng" in state:  # absent in checkpoints written before env.slip (their moves never slipped)
+            self.env.set_rng_state(state["env_rng"])

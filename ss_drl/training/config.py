@@ -10,7 +10,7 @@ import numbers
 from omegaconf import DictConfig
 
 from ss_drl.agents.settings import DQNSettings
-from ss_drl.agents.targets import MAZE, resolve_bounds
+from ss_drl.agents.targets import environment_assumptions, resolve_bounds
 from ss_drl.envs.maze import PRESETS, MazeError, load_maze
 from ss_drl.her import STRATEGIES
 from ss_drl.smart_start.controller import SmartStart
@@ -94,6 +94,11 @@ def _frontier_run(cfg: DictConfig) -> None:
         raise ConfigError(
             f"her.k: {cfg.her.k!r} is out of range for the frontier explorer (allowed: 0; it has no replay)"
         )
+    if float(cfg.env.get("slip", 0)) > 0:
+        raise ConfigError(
+            f"env.slip: {cfg.env.slip!r} is out of range for the frontier explorer (allowed: 0; its memory holds "
+            "one successor per move: it assumes deterministic moves)"
+        )
     if cfg.trainer.frames_per_batch > cfg.env.num_envs:
         raise ConfigError(
             f"trainer.frames_per_batch: {cfg.trainer.frames_per_batch!r} is out of range for the frontier explorer "
@@ -120,6 +125,7 @@ def validate_config(cfg: DictConfig) -> None:
         raise ConfigError(f"{key}: {exc}") from None
     _number(cfg, "env.max_steps", low=1, integer=True)
     _number(cfg, "env.num_envs", low=1, integer=True)
+    _number(cfg, "env.slip", low=0, high=1)
     # trainer
     _number(cfg, "trainer.total_env_steps", low=0, low_open=True, integer=True)
     _number(cfg, "trainer.frames_per_batch", low=1, integer=True)
@@ -152,7 +158,7 @@ def validate_config(cfg: DictConfig) -> None:
             settings = DQNSettings.from_config(cfg.agent)
             # A bound the user turned on that this environment cannot support is refused here; one that comes with
             # the learner's defaults is turned off when the run starts (ss_drl.training.trainer.dqn_settings).
-            resolve_bounds(settings, MAZE, explicit=_command_line_keys(cfg, "agent."))
+            resolve_bounds(settings, environment_assumptions(cfg.env), explicit=_command_line_keys(cfg, "agent."))
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         _number(cfg, "agent.lr", low=0, low_open=True)

@@ -150,9 +150,9 @@ def dqn_settings(cfg: DictConfig):
     """The DQN learner's typed settings, with every bound whose assumption the environment breaks turned off (one
     line each on stderr; :func:`~ss_drl.agents.targets.resolve_bounds`)."""
     from ss_drl.agents.settings import DQNSettings
-    from ss_drl.agents.targets import MAZE, resolve_bounds
+    from ss_drl.agents.targets import environment_assumptions, resolve_bounds
 
-    settings, lines = resolve_bounds(DQNSettings.from_config(cfg.agent), MAZE)
+    settings, lines = resolve_bounds(DQNSettings.from_config(cfg.agent), environment_assumptions(cfg.env))
     for line in lines:
         print(f"ss-drl: {line}", file=sys.stderr)
     return settings
@@ -196,7 +196,10 @@ class Trainer:
         seed_everything(int(cfg.seed))
         self.maze = make_maze(cfg.env)
         self.optimal_length = self.maze.shortest_path_length
-        self.env = BatchedMazeEnv(self.maze, num_envs=cfg.env.num_envs, max_steps=cfg.env.max_steps)
+        # The slips draw from the env's own generator, apart from the training RNG.
+        self.env = BatchedMazeEnv(
+            self.maze, cfg.env.num_envs, cfg.env.max_steps, slip=float(cfg.env.slip), seed=int(cfg.seed) + 2_000_003
+        )
         self.counts = CountModel(self.maze.n_cells)
         self.agent = make_agent(cfg, self.maze, int(cfg.seed), self.counts)
         self.frontier = Frontier(self.counts)

@@ -1,0 +1,181 @@
+"""Stochastic moves (``env.slip``, issue 50): both envs against the closed-form transition probabilities, seeded
+determinism, the bounds that assume deterministic moves turned off before training (one line), and a run with slips
+that resumes from a checkpoint as if it had never stopped."""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from helpers import TINY, compose_cfg
+from tensordict import TensorDict
+
+from ss_drl.envs.batched import BatchedMazeEnv
+from ss_drl.envs.gridworld import MazeEnv
+from ss_drl.envs.maze import action_probabilities, parse_maze
+from ss_drl.training.outputs import EPISODES_FILE, EVAL_FILE, SUMMARY_FILE, TRAIN_FILE
+from ss_drl.training.trainer import Trainer, dqn_settings
+
+R, D, L, U = range(4)
+#: S in a corner: right leads on, down leads on, left and up bump (off the grid).
+CORNER = "S..\n..G\n"
+SLIP = 0.4
+
+
+def closed_form(maze, cell: int, action: int) -> dict[int, float]:
+    """P(s' | s, a) by hand: the chosen move with 1 - slip + slip / 4, each other move with slip / 4."""
+    table = maze.transition_table()
+    out: Counter = Counter()
+    for b in range(4):
+        out[int(table[cell, b])] += (1 - SLIP) * (b == action) + SLIP / 4
+    return dict(out)
+
+
+def test_action_probabilities_by_hand():
+    p = action_probabilities(0.4)
+    assert p[R].tolist() == pytest.approx([0.7, 0.1, 0.1, 0.1])
+    assert np.allclose(p.sum(axis=1), 1.0)
+    assert np.array_equal(action_probabilities(0.0), np.eye(4))
+
+
+def _within(counts: Counter, expected: dict[int, float], n: int) -> None:
+    assert set(counts) <= set(expected)
+    for cell, p in expected.items():
+        sigma = (p * (1 - p) / n) ** 0.5
+        assert abs(counts[cell] / n - p) < 5 * sigma, (cell, counts[cell] / n, p)
+
+
+@pytest.mark.parametrize("action", [R, L])
+def test_batched_env_moves_with_the_closed_form_frequencies(action):
+    maze = parse_maze(CORNER)
+    n = 40_000
+    env = BatchedMazeEnv(maze, num_envs=n, slip=SLIP, seed=1)
+    env.reset()
+    out = env.step(TensorDict({"action": torch.full((n,), action)}, batch_size=[n]))
+    counts = Counter(out["next", "observation"].tolist())
+    expected = closed_form(maze, maze.start_cell, action)
+    assert expected == pytest.approx({0: 0.2 + 0.6 * (action == L), 1: 0.1 + 0.6 * (action == R), 3: 0.1})
+    _within(counts, expected, n)
+
+
+@pytest.mark.parametrize("action", [R, L])
+def test_gymnasium_env_moves_with_the_closed_form_frequencies(action):
+    maze = parse_maze(CORNER)
+    env = MazeEnv(maze, slip=SLIP)
+    env.reset(seed=3)
+    n, counts = 20_000, Counter()
+    for _ in range(n):
+        env.reset()
+        obs, *_ = env.step(action)
+        counts[maze.cell(tuple(obs["observation"]))] += 1
+    _within(counts, closed_form(maze, maze.start_cell, action), n)
+
+
+def test_slips_are_seeded():
+    maze = parse_maze(CORNER)
+
+    def batched(seed):
+        env = BatchedMazeEnv(maze, num_envs=64, slip=SLIP, seed=seed, max_steps=50)
+        env.reset()
+        return torch.stack(
+            [env.step(TensorDict({"action": torch.full((64,), R)}, batch_size=[64]))["next", "observation"]
+             for _ in range(3)]
+        )  # fmt: skip
+
+    assert torch.equal(batched(5), batched(5)) and not torch.equal(batched(5), batched(6))
+
+    def gym_walk(seed):
+        env = MazeEnv(maze, slip=SLIP)
+        env.reset(seed=seed)
+        return [tuple(env.step(D)[0]["observation"]) for _ in range(30)]
+
+    assert gym_walk(7) == gym_walk(7) and gym_walk(7) != gym_walk(8)
+
+
+def test_no_slip_draws_nothing():
+    env = BatchedMazeEnv(parse_maze(CORNER), num_envs=4, seed=0)
+    before = env.rng_state().clone()
+    env.reset()
+    env.step(TensorDict({"action": torch.full((4,), R)}, batch_size=[4]))
+    assert torch.equal(env.rng_state(), before)
+
+
+@pytest.mark.parametrize("method", ["ss_her", "ss_her_bounded"])
+def test_both_learners_turn_their_deterministic_bounds_off_in_one_line(method, capsys):
+    cfg = compose_cfg(f"+experiment=easy_small_{method}", "env.slip=0.1")
+    settings = dqn_settings(cfg)
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("ss-drl:")]
+    assert len(lines) == 1 and "deterministic moves" in lines[0]
+    on_before = [k for k in ("hindsight_bound", "n_step_max", "distance_floor", "distance_ceiling", "model_targets")
+                 if cfg.agent[k]]  # fmt: skip
+    assert on_before and all(f"agent.{k}" in lines[0] for k in on_before)
+    assert not any(getattr(settings, k) for k in on_before)
+    # Without slips nothing is turned off.
+    dqn_settings(compose_cfg(f"+experiment=easy_small_{method}"))
+    assert "turned off" not in capsys.readouterr().err
+
+
+def test_a_deterministic_bound_set_on_the_command_line_is_refused_under_slips():
+    from helpers import ROOT
+    from hydra import compose, initialize_config_dir
+
+    from ss_drl.training.config import ConfigError, validate_config
+
+    overrides = ["+experiment=easy_small_ss_her", "env.slip=0.1", "agent.hindsight_bound=true"]
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=overrides, return_hydra_config=True)  # the command line is known
+    with pytest.raises(ConfigError, match=r"^agent.hindsight_bound=true: this environment breaks"):
+        validate_config(cfg)
+
+
+def test_the_frontier_explorer_refuses_slips():
+    from ss_drl.training.config import ConfigError, validate_config
+
+    with pytest.raises(ConfigError, match=r"^env.slip: 0.1 is out of range for the frontier explorer"):
+        validate_config(compose_cfg("+experiment=easy_small_frontier", "env.slip=0.1"))
+
+
+class Crash(Exception):
+    pass
+
+
+def _rows(path: Path) -> list[list[str]]:
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))
+    keep = [i for i, name in enumerate(rows[0]) if name not in ("wall_s", "updates_per_s")]
+    return [[row[i] for i in keep] for row in rows]
+
+
+@pytest.mark.slow
+def test_a_run_with_slips_resumes_as_if_uninterrupted_and_lists_its_bounds(tmp_path, monkeypatch):
+    run = [
+        "+experiment=easy_small_ss_her_bounded",
+        *(o for o in TINY if not o.startswith("trainer.total_env_steps=")),
+        "env.slip=0.2", "trainer.total_env_steps=1200", "trainer.checkpoint_interval=300", "env.max_steps=100",
+    ]  # fmt: skip
+    full, cut = tmp_path / "full", tmp_path / "cut"
+    Trainer(compose_cfg(*run), full).train()
+    crashed = Trainer(compose_cfg(*run), cut)
+    real_save = crashed.save_checkpoint
+    saves = []
+
+    def save_then_crash():
+        path = real_save()
+        saves.append(crashed.collector.env_steps)
+        if len(saves) == 2:
+            raise Crash
+        return path
+
+    monkeypatch.setattr(crashed, "save_checkpoint", save_then_crash)
+    with pytest.raises(Crash):
+        crashed.train()
+    Trainer(compose_cfg(*run, "trainer.resume=true"), cut).train()
+    for file in (EPISODES_FILE, EVAL_FILE, TRAIN_FILE):
+        assert _rows(cut / file) == _rows(full / file), file
+    summary = json.loads((full / SUMMARY_FILE).read_text())
+    assert summary["bounds_in_force"] == []  # every bound of the model-bounded learner assumes deterministic moves
