@@ -179,3 +179,69 @@ def test_a_run_with_slips_resumes_as_if_uninterrupted_and_lists_its_bounds(tmp_p
         assert _rows(cut / file) == _rows(full / file), file
     summary = json.loads((full / SUMMARY_FILE).read_text())
     assert summary["bounds_in_force"] == []  # every bound of the model-bounded learner assumes deterministic moves
+
+
+# --- the optimum and "learned" under slips --------------------------------------------------------------------------
+def test_expected_steps_on_a_corridor_by_hand():
+    """S . G in a row: from S only "right" leads on, with probability q = 1 - 3 slip / 4 (left, up and down bump);
+    from the middle "right" enters G with q, "left" of the slipped ones goes back with slip / 4. So
+    V1 = 1 + (slip / 4) V0 + (slip / 2) V1 and V0 = 1 + q V1 + (1 - q) V0, solved by hand."""
+    maze = parse_maze("S.G\n")
+    slip = 0.3
+    q = 1 - 3 * slip / 4
+    # V0 = 1 / q + V1; V1 (1 - slip / 2) = 1 + (slip / 4) (1 / q + V1)  =>  V1 = (1 + slip / (4 q)) / (1 - 3 slip / 4)
+    v1 = (1 + slip / (4 * q)) / (1 - 3 * slip / 4)
+    v0 = 1 / q + v1
+    v, policy = maze.expected_steps(slip)
+    assert v[0] == pytest.approx(v0, rel=1e-9) and v[1] == pytest.approx(v1, rel=1e-9) and v[2] == 0
+    assert policy[:2].tolist() == [R, R]
+    assert maze.expected_steps(0.0)[0][:3].tolist() == [2, 1, 0]
+
+
+def test_evaluation_rolls_out_in_the_env_dynamics():
+    """Episodes of a fixed policy under slips: seeded, their lengths' mean near the policy's expected steps, and
+    without slips one deterministic walk (a loop ends it at max_steps)."""
+    from ss_drl.training.greedy import evaluate_policy
+
+    maze = parse_maze("S.G\n")
+    v, policy = maze.expected_steps(SLIP)
+    run = lambda seed: evaluate_policy(  # noqa: E731
+        torch.from_numpy(policy), maze, 200, 4000, SLIP, torch.Generator().manual_seed(seed)
+    )
+    a, b = run(1), run(1)
+    assert a.lengths == b.lengths and a.success and a.success_rate == 1.0
+    sd = float(np.std(a.lengths)) / len(a.lengths) ** 0.5
+    assert abs(a.mean_length - v[maze.start_cell]) < 5 * sd
+    loop = torch.tensor([L, L, L])  # never gets anywhere
+    stuck = evaluate_policy(loop, maze, 50)
+    assert stuck.lengths == [50] and not stuck.success and stuck.path == [0, 0]
+
+
+@pytest.mark.parametrize(("maze_name", "slip", "evals_in_last_quarter"), [("easy", 0.1, 5), ("medium", 0.1, 30),
+                                                                          ("easy", 0.25, 5)])  # fmt: skip
+def test_the_optimal_policy_passes_the_learned_rule(maze_name, slip, evals_in_last_quarter):
+    """With the derived ``trainer.eval_episodes``, the optimal policy simulated over 200 runs passes the learned rule
+    (at least 90% of the last quarter's evaluations within 1.05x the expected steps, all episodes reaching G) in at
+    least 95% of them. The last quarter holds 5 evaluations on Easy's budget (10k, every 500) and 30 on Medium's."""
+    from fractions import Fraction
+
+    from ss_drl.envs.maze import load_maze
+    from ss_drl.training.greedy import eval_episodes, evaluate_policy
+    from ss_drl.training.learned import SHARE, within_bound
+
+    maze = load_maze(maze_name)
+    v, policy = maze.expected_steps(slip)
+    optimum = float(v[maze.start_cell])
+    n = eval_episodes(slip)
+    runs = 200
+    ev = evaluate_policy(
+        torch.from_numpy(policy), maze, 1000, runs * evals_in_last_quarter * n, slip, torch.Generator().manual_seed(0)
+    )
+    lengths = torch.tensor(ev.lengths).view(runs, evals_in_last_quarter, n).double()
+    reached = torch.tensor(ev.successes).view(runs, evals_in_last_quarter, n)
+    within = [
+        [within_bound(float(lengths[r, e].mean()), bool(reached[r, e].all()), optimum) for e in range(lengths.shape[1])]
+        for r in range(runs)
+    ]
+    passed = sum(Fraction(sum(w), len(w)) >= SHARE for w in within)
+    assert passed >= 0.95 * runs, (passed, n)

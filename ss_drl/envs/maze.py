@@ -128,6 +128,35 @@ class Maze:
         """Steps on a shortest path from S to G (the optimal episode length)."""
         return int(self.distances_from(self.start)[self.goal])
 
+    def expected_steps(
+        self, slip: float, tol: float = 1e-9, max_sweeps: int = 1_000_000
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The optimal policy under ``env.slip`` and its expected steps to G, by value iteration on the true model.
+
+        ``V(G) = 0`` and ``V(s) = 1 + min_a sum_b p[a, b] V(table[s, b])`` (:func:`action_probabilities`), swept
+        from ``V = 0`` (Jacobi) until the largest change is below ``tol``. Returns ``(V, policy)``: float64
+        ``(n_cells,)`` expected steps (``inf`` where G cannot be reached, walls included) and int64 ``(n_cells,)``
+        greedy actions (lowest index on ties). With ``slip == 0`` V is the BFS distance to G.
+        """
+        table = self.transition_table()
+        p = action_probabilities(slip)
+        goal = self.goal_cell
+        reach = self.distances_from(self.goal).reshape(-1) >= 0  # moves are reversible: reaches G iff G reaches it
+        v = np.zeros(self.n_cells)
+        for _ in range(max_sweeps):
+            q = 1.0 + v[table] @ p.T  # (n_cells, A): q[s, a] = 1 + sum_b p[a, b] v[table[s, b]]
+            new = np.where(reach, q.min(axis=1), 0.0)
+            new[goal] = 0.0
+            delta = float(np.abs(new - v).max())
+            v = new
+            if delta < tol:
+                break
+        else:
+            raise RuntimeError(f"expected_steps: value iteration did not converge in {max_sweeps} sweeps")
+        q = 1.0 + v[table] @ p.T
+        policy = q.argmin(axis=1)
+        return np.where(reach, v, np.inf), policy
+
     def to_text(self) -> str:
         chars = np.where(self.walls, WALL, FREE).astype("<U1")
         chars[self.start] = START

@@ -130,6 +130,8 @@ def validate_config(cfg: DictConfig) -> None:
     _number(cfg, "trainer.total_env_steps", low=0, low_open=True, integer=True)
     _number(cfg, "trainer.frames_per_batch", low=1, integer=True)
     _number(cfg, "trainer.eval_interval", low=1, integer=True)
+    if _get(cfg, "trainer.eval_episodes") is not None:
+        _number(cfg, "trainer.eval_episodes", low=1, integer=True)
     _number(cfg, "trainer.checkpoint_interval", low=1, integer=True)
     _number(cfg, "trainer.log_interval", low=1, integer=True)
     _number(cfg, "trainer.torch_threads", low=1, integer=True)

@@ -37,9 +37,11 @@ class Learned:
     last_quarter_within: float | None  # fraction of last-quarter evaluations within bound; None if there are none
 
 
-def within_bound(length: float, success, optimal_length: int) -> bool:
-    """Whether one evaluation succeeded with ``length <= 1.05 * optimal_length`` (exactly, no float rounding)."""
-    return bool(success) and Fraction(length) <= BOUND * optimal_length
+def within_bound(length: float, success, optimal_length: float) -> bool:
+    """Whether one evaluation succeeded with ``length <= 1.05 * optimal_length`` (exactly, no float rounding). Under
+    slips ``length`` is the mean length of the evaluation's episodes, ``success`` whether all of them reached G, and
+    ``optimal_length`` the optimal policy's expected steps (:meth:`~ss_drl.envs.maze.Maze.expected_steps`)."""
+    return bool(success) and Fraction(length) <= BOUND * Fraction(optimal_length)
 
 
 def learned(evals: Sequence[EvalRecord], optimal_length: int, total_env_steps: int) -> Learned:

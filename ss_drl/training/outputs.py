@@ -50,8 +50,9 @@ EPISODE_COLUMNS = (
 EVAL_COLUMNS = (
     "env_steps",  # cumulative env steps at evaluation time
     "episode",  # finished training episodes at evaluation time
-    "eval_length",  # steps of the greedy episode from S (max_steps when it fails)
-    "eval_success",  # 1 if the greedy episode reached G
+    "eval_length",  # steps of the greedy episode from S (max_steps when it fails); under slips the episodes' mean
+    "eval_success",  # 1 if the greedy episode (every one of them, under slips) reached G
+    "eval_success_rate",  # share of the evaluation's episodes that reached G (trainer.eval_episodes; 1 without slips)
     "wall_s",  # seconds since the run started (eval.csv files from before this column load without it)
 )
 
@@ -80,7 +81,10 @@ SUMMARY_KEYS = (
     "env_steps",  # env steps taken
     "final_eval_length",  # length of the last greedy evaluation
     "final_greedy_accuracy",  # at the last evaluation: fraction of states whose greedy action is on a shortest path
-    "optimal_length",  # BFS shortest path S -> G
+    "final_eval_success_rate",  # share of the last evaluation's episodes that reached G
+    "optimal_length",  # BFS shortest path S -> G; under slips the optimal policy's expected steps from S
+    "slip",  # env.slip: probability that an action is replaced by one drawn uniformly
+    "eval_episodes",  # greedy episodes per evaluation (trainer.eval_episodes; derived from env.slip when null)
     # The "learned" rule (ss_drl.training.learned): an evaluation is within bound when it succeeds within
     # 1.05 x optimal_length; the run is learned when >= 90% of its last-quarter evaluations are.
     "learned_env_step",  # env steps at the first evaluation of the streak that stays within bound (null if not learned)

@@ -37,7 +37,7 @@ from ss_drl.training import checkpoint as ckpt
 from ss_drl.training.collector import Episode, MazeCollector
 from ss_drl.training.config import validate_config
 from ss_drl.training.figures import plot_visit_counts
-from ss_drl.training.greedy import greedy_rollout
+from ss_drl.training.greedy import eval_episodes, evaluate_policy, greedy_accuracy, greedy_policy
 from ss_drl.training.learned import EvalRecord, learned
 from ss_drl.training.outputs import (
     FAILED_FILE,
@@ -195,7 +195,16 @@ class Trainer:
         torch.set_num_threads(int(cfg.trainer.torch_threads))
         seed_everything(int(cfg.seed))
         self.maze = make_maze(cfg.env)
-        self.optimal_length = self.maze.shortest_path_length
+        # The optimum: the shortest path, or under slips the optimal policy's expected steps from S (value iteration
+        # on the true model); each evaluation rolls the greedy policy out eval_episodes times in the env's dynamics.
+        self.slip = float(cfg.env.slip)
+        if self.slip > 0:
+            self.optimal_length = float(self.maze.expected_steps(self.slip)[0][self.maze.start_cell])
+        else:
+            self.optimal_length = self.maze.shortest_path_length
+        episodes = cfg.trainer.eval_episodes
+        self.eval_episodes = eval_episodes(self.slip) if episodes is None else int(episodes)
+        self.eval_generator = torch.Generator().manual_seed(int(cfg.seed) + 3_000_017)
         # The slips draw from the env's own generator, apart from the training RNG.
         self.env = BatchedMazeEnv(
             self.maze, cfg.env.num_envs, cfg.env.max_steps, slip=float(cfg.env.slip), seed=int(cfg.seed) + 2_000_003
@@ -210,6 +219,7 @@ class Trainer:
         self.episodes = 0
         self.first_goal = FirstGoal()
         self.last_accuracy: float | None = None  # greedy accuracy at the last evaluation
+        self.last_success_rate: float | None = None  # share of the last evaluation's episodes that reached G
         self.evals: list[EvalRecord] = []  # every evaluation of the run (kept in checkpoints), for the learned rule
         self.next_eval = 0
         self.next_checkpoint = cfg.trainer.checkpoint_interval
@@ -371,29 +381,36 @@ class Trainer:
             bar.set_postfix(episodes=self.episodes, success=f"{success:.2f}")
 
     def evaluate(self) -> EvalRecord:
-        rollout = greedy_rollout(self.agent, self.maze, self.cfg.env.max_steps)
+        policy = greedy_policy(self.agent, self.maze)
+        accuracy = greedy_accuracy(policy, self.maze)
+        max_steps = self.cfg.env.max_steps
+        ev = evaluate_policy(policy, self.maze, max_steps, self.eval_episodes, self.slip, self.eval_generator)
+        length = ev.lengths[0] if self.eval_episodes == 1 else round(ev.mean_length, 3)
         steps = self.collector.env_steps
         wall = round(time.perf_counter() - self.start_time, 3)
         self.logger.log_eval(
             {
                 "env_steps": steps,
                 "episode": self.episodes,
-                "eval_length": rollout.length,
-                "eval_success": int(rollout.success),
+                "eval_length": length,
+                "eval_success": int(ev.success),
+                "eval_success_rate": round(ev.success_rate, 4),
                 "wall_s": wall,
             }
         )
         self.logger.log_metrics(
             {
-                "eval/length": rollout.length,
-                "eval/success": int(rollout.success),
+                "eval/length": length,
+                "eval/success": int(ev.success),
+                "eval/success_rate": ev.success_rate,
                 "eval/optimal": self.optimal_length,
-                "eval/greedy_accuracy": rollout.accuracy,
+                "eval/greedy_accuracy": accuracy,
             },
             step=steps,
         )
-        self.evals.append(EvalRecord(steps, rollout.length, bool(rollout.success), wall))
-        self.last_accuracy = rollout.accuracy
+        self.evals.append(EvalRecord(steps, length, bool(ev.success), wall))
+        self.last_success_rate = ev.success_rate
+        self.last_accuracy = accuracy
         while self.next_eval <= steps:
             self.next_eval += self.cfg.trainer.eval_interval
         return self.evals[-1]
@@ -413,7 +430,10 @@ class Trainer:
             "env_steps": self.collector.env_steps,
             "final_eval_length": None if last is None else last.length,
             "final_greedy_accuracy": None if last is None else round(self.last_accuracy, 4),
-            "optimal_length": self.optimal_length,
+            "final_eval_success_rate": None if last is None else round(self.last_success_rate, 4),
+            "optimal_length": self.optimal_length if self.slip == 0 else round(self.optimal_length, 3),
+            "slip": self.slip,
+            "eval_episodes": self.eval_episodes,
             "learned_env_step": rule.env_step,
             "learned_wall_s": rule.wall_s,
             "last_quarter_within": rule.last_quarter_within,
@@ -453,6 +473,8 @@ class Trainer:
             "rows": self.logger.rows,
             "update_log": None if self.update_log is None else self.update_log.state_dict(),
             "rng": ckpt.rng_state(),
+            "eval_rng": self.eval_generator.get_state(),
+            "last_success_rate": self.last_success_rate,
             "config": self.resolved,
         }
 
@@ -486,6 +508,9 @@ class Trainer:
         self.first_goal = FirstGoal(**state["first_goal"])
         self.last_accuracy = state["last_accuracy"]
         self.evals = [EvalRecord(*e) for e in state["evals"]]
+        if "eval_rng" in state:  # absent in checkpoints written before evaluations rolled out in the env
+            self.eval_generator.set_state(state["eval_rng"])
+            self.last_success_rate = state["last_success_rate"]
         self.next_eval, self.next_checkpoint = state["next_eval"], state["next_checkpoint"]
         self.next_log = state["next_log"]
         self.ss_targets = list(state["ss_targets"])
