@@ -245,3 +245,52 @@ def test_the_optimal_policy_passes_the_learned_rule(maze_name, slip, evals_in_la
     ]
     passed = sum(Fraction(sum(w), len(w)) >= SHARE for w in within)
     assert passed >= 0.95 * runs, (passed, n)
+
+
+def test_the_guided_phase_reaches_smart_start_under_slips():
+    """Easy at slip 0.25, a count model learned from 10 tries of every move in the slipping env, S_ss drawn at
+    random among the visited cells (a UCB with both weights 0, seeded): 200 guided phases, each stepped in the
+    slipping env from S, follow the planner's policy from wherever the agent lands. At least 90% arrive within the
+    derived limit (3x the planned route), and every phase ends by the limit."""
+    from ss_drl.envs.maze import load_maze
+    from ss_drl.smart_start import CountModel, Planner, SmartStart
+    from ss_drl.training.trainer import guided_limit
+
+    slip, n = 0.25, 200
+    maze = load_maze("easy")
+    table = torch.from_numpy(maze.transition_table())
+    gen = torch.Generator().manual_seed(0)
+    free = torch.from_numpy(np.flatnonzero(~maze.walls.reshape(-1)))
+    s = free.repeat_interleave(4 * 10)
+    a = torch.arange(4).repeat_interleave(10).repeat(free.numel())
+
+    def slipping(cells, actions):
+        slipped = torch.rand(cells.shape, generator=gen) < slip
+        return table[cells, torch.where(slipped, torch.randint(0, 4, cells.shape, generator=gen), actions)]
+
+    counts = CountModel(maze.n_cells)
+    counts.update(s, a, slipping(s, a), torch.zeros(s.numel()))
+    assert not counts.structure().deterministic
+    limit = guided_limit(compose_cfg("+experiment=easy_ss_her").smart_start, slip)
+    assert limit == 3.0
+    ss = SmartStart(maze, counts, n, eta=1.0, c_ss=0.0, w_q=0.0, theta=0, planner=Planner(maze.width),
+                    generator=torch.Generator().manual_seed(1), guided_limit=limit)  # fmt: skip
+    ss.end_episodes(torch.ones(n, dtype=torch.bool))
+    starts = torch.full((n,), maze.start_cell)
+    ss.start_episodes(torch.ones(n, dtype=torch.bool), starts, torch.full((n,), maze.goal_cell),
+                      lambda states, goals: torch.zeros(goals.numel(), states.numel(), 4))  # fmt: skip
+    target = ss.target.clone()
+    assert float(ss.planned_steps.double().mean()) > 20  # routes across the maze, not next door
+    cells = starts.clone()
+    for _ in range(2000):
+        if not bool(ss.active.any()):
+            break
+        was = ss.active.clone()
+        nxt = slipping(cells, ss.guide(cells, torch.zeros_like(cells)))
+        cells = torch.where(was, nxt, cells)
+        ss.after_step(was, cells, torch.zeros(n, dtype=torch.bool))
+    assert not ss.active.any()
+    limits = (limit * ss.planned_steps.double()).ceil().long()
+    assert bool((ss.steps <= limits).all())
+    assert float(ss.reached.double().mean()) >= 0.9, float(ss.reached.double().mean())
+    assert bool((cells[ss.reached] == target[ss.reached]).all())

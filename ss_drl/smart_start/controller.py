@@ -54,6 +54,9 @@ class SmartStart:
         explore: ``"epsilon_greedy"`` (the paper), ``"untried"`` or ``"frontier"``: what follows arrival at S_ss.
         explore_after_goal: keep ``select`` and ``explore`` after the goal has been reached (False: the paper's
             Smart Start from then on).
+        guided_limit: the guided phase also ends after this many times the planner's route length (at least one
+            step); None: no limit. Under slips the route is walked from wherever the agent lands, and a run of bad
+            luck must not keep the policy from acting for the rest of the episode.
     """
 
     SELECT = ("visited", "frontier")
@@ -75,6 +78,7 @@ class SmartStart:
         select: str = "visited",
         explore: str = "epsilon_greedy",
         explore_after_goal: bool = True,
+        guided_limit: float | None = None,
     ):
         if select not in self.SELECT or explore not in self.EXPLORE:
             raise ValueError(f"unknown Smart Start option: select={select!r}, explore={explore!r}")
@@ -82,6 +86,7 @@ class SmartStart:
         self.eta, self.c_ss, self.w_q, self.theta = float(eta), float(c_ss), float(w_q), int(theta)
         self.guided_epsilon = float(guided_epsilon)
         self.select, self.explore, self.explore_after_goal = select, explore, bool(explore_after_goal)
+        self.guided_limit = None if guided_limit is None else float(guided_limit)
         self.frontier = frontier if frontier is not None else Frontier(counts)
         n = int(num_envs)
         self.episodes = torch.zeros(n, dtype=torch.int64)  # finished episodes per copy
@@ -245,6 +250,9 @@ class SmartStart:
         arrived = was_active & self.within(next_cells, self.target)
         self.reached |= arrived
         self.active &= ~arrived & ~done
+        if self.guided_limit is not None:
+            limit = (self.guided_limit * self.planned_steps.clamp(min=1).double()).ceil().long()
+            self.active &= self.steps < limit
         if self.explore != "epsilon_greedy" and bool(arrived.any()) and self._options_on():
             self.exploring |= arrived & ~done
 

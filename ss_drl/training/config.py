@@ -196,6 +196,8 @@ def validate_config(cfg: DictConfig) -> None:
     _number(cfg, "smart_start.gamma", low=0, high=1, low_open=True, high_open=True)
     _number(cfg, "smart_start.tol", low=0, low_open=True)
     _number(cfg, "smart_start.max_sweeps", low=1, integer=True)
+    if _get(cfg, "smart_start.guided_limit") is not None:
+        _number(cfg, "smart_start.guided_limit", low=1)
     _choice(cfg, "smart_start.select", SmartStart.SELECT)
     _choice(cfg, "smart_start.explore", SmartStart.EXPLORE)
     _boolean(cfg, "smart_start.explore_after_goal")

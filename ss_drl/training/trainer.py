@@ -181,7 +181,17 @@ def make_smart_start(
         select=ss.select,
         explore=ss.explore,
         explore_after_goal=ss.explore_after_goal,
+        guided_limit=guided_limit(ss, float(cfg.env.slip)),
     )
+
+
+def guided_limit(ss_cfg, slip: float) -> float | None:
+    """``smart_start.guided_limit``, or when it is null the derived one: 3 under slips (the route's expected
+    length grows with them, and rarely past twice the planned one at slip 0.25), none with deterministic moves (the
+    route leads there; only ``guided_epsilon``'s random steps delay it)."""
+    if ss_cfg.guided_limit is not None:
+        return float(ss_cfg.guided_limit)
+    return 3.0 if slip > 0 else None
 
 
 class Trainer:
