@@ -179,6 +179,16 @@ def test_a_run_with_slips_resumes_as_if_uninterrupted_and_lists_its_bounds(tmp_p
         assert _rows(cut / file) == _rows(full / file), file
     summary = json.loads((full / SUMMARY_FILE).read_text())
     assert summary["bounds_in_force"] == []  # every bound of the model-bounded learner assumes deterministic moves
+    maze = parse_maze((Path(__file__).parents[1] / "ss_drl" / "mazes" / "easy_small.txt").read_text())
+    assert summary["slip"] == 0.2 and summary["eval_episodes"] == 48  # ceil(240 * 0.2)
+    assert summary["optimal_length"] == round(float(maze.expected_steps(0.2)[0][maze.start_cell]), 3)
+    assert summary["optimal_length"] > maze.shortest_path_length
+    with (full / EVAL_FILE).open(newline="") as f:
+        evals = list(csv.DictReader(f))
+    for row in evals:  # a share of 48 episodes, rounded to 4 places
+        assert abs(float(row["eval_success_rate"]) * 48 - round(float(row["eval_success_rate"]) * 48)) < 0.01
+    for row in evals:  # success is "every episode reached G"
+        assert (row["eval_success"] == "1") == (float(row["eval_success_rate"]) == 1.0)
 
 
 # --- the optimum and "learned" under slips --------------------------------------------------------------------------

@@ -209,7 +209,8 @@ class Trainer:
         # on the true model); each evaluation rolls the greedy policy out eval_episodes times in the env's dynamics.
         self.slip = float(cfg.env.slip)
         if self.slip > 0:
-            self.optimal_length = float(self.maze.expected_steps(self.slip)[0][self.maze.start_cell])
+            # Rounded once, as summary.json holds it, so that plot.py's learned rule reads the same optimum.
+            self.optimal_length = round(float(self.maze.expected_steps(self.slip)[0][self.maze.start_cell]), 3)
         else:
             self.optimal_length = self.maze.shortest_path_length
         episodes = cfg.trainer.eval_episodes
@@ -441,7 +442,7 @@ class Trainer:
             "final_eval_length": None if last is None else last.length,
             "final_greedy_accuracy": None if last is None else round(self.last_accuracy, 4),
             "final_eval_success_rate": None if last is None else round(self.last_success_rate, 4),
-            "optimal_length": self.optimal_length if self.slip == 0 else round(self.optimal_length, 3),
+            "optimal_length": self.optimal_length,
             "slip": self.slip,
             "eval_episodes": self.eval_episodes,
             "learned_env_step": rule.env_step,
