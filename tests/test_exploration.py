@@ -273,3 +273,21 @@ def test_episodes_count_each_new_move_once_and_the_exploration_phase(tmp_path):
     assert frontier_steps == sorted(frontier_steps, reverse=True)
     assert sum(e.explore_steps for e in guided) > 0
     assert all(e.new_moves_after_ss <= e.new_moves for e in guided)
+
+
+@pytest.mark.parametrize("from_start", [False, True])
+def test_the_first_episode_explores_from_its_first_step_only_with_explore_from_start(from_start):
+    """A copy's first episode has no guided phase. With ``explore_from_start`` it is an exploration phase from S: on
+    an empty count model the first move is one of S's untried moves, and the phase goes on; without, the policy."""
+    maze = _maze()
+    ss = SmartStart(
+        maze, CountModel(maze.n_cells), 1, eta=1.0, c_ss=2.0, w_q=0.0, theta=0, planner=Planner(maze.width),
+        generator=torch.Generator().manual_seed(0), explore="frontier", explore_from_start=from_start,
+    )  # fmt: skip
+    one = torch.ones(1, dtype=torch.bool)
+    ss.start_episodes(one, torch.tensor([maze.start_cell]), torch.tensor([maze.goal_cell]), None)
+    assert not ss.used.any() and ss.exploring.tolist() == [from_start]
+    action, cell = _step(ss, maze, maze.start_cell)
+    assert (action != SENTINEL) == from_start
+    if from_start:
+        assert ss.frontier.tried[maze.start_cell, action] and ss.exploring.tolist() == [True]

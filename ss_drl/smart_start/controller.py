@@ -54,6 +54,8 @@ class SmartStart:
         explore: ``"epsilon_greedy"`` (the paper), ``"untried"`` or ``"frontier"``: what follows arrival at S_ss.
         explore_after_goal: keep ``select`` and ``explore`` after the goal has been reached (False: the paper's
             Smart Start from then on).
+        explore_from_start: with ``explore="frontier"``, a copy's first episode (which has no guided phase: nothing
+            is visited yet) is an exploration phase from its first step.
         guided_limit: the guided phase also ends after this many times the planner's route length (at least one
             step); None: no limit. Under slips the route is walked from wherever the agent lands, and a run of bad
             luck must not keep the policy from acting for the rest of the episode.
@@ -79,6 +81,7 @@ class SmartStart:
         explore: str = "epsilon_greedy",
         explore_after_goal: bool = True,
         guided_limit: float | None = None,
+        explore_from_start: bool = False,
     ):
         if select not in self.SELECT or explore not in self.EXPLORE:
             raise ValueError(f"unknown Smart Start option: select={select!r}, explore={explore!r}")
@@ -87,6 +90,7 @@ class SmartStart:
         self.guided_epsilon = float(guided_epsilon)
         self.select, self.explore, self.explore_after_goal = select, explore, bool(explore_after_goal)
         self.guided_limit = None if guided_limit is None else float(guided_limit)
+        self.explore_from_start = bool(explore_from_start)
         self.frontier = frontier if frontier is not None else Frontier(counts)
         n = int(num_envs)
         self.episodes = torch.zeros(n, dtype=torch.int64)  # finished episodes per copy
@@ -136,6 +140,9 @@ class SmartStart:
         self.exploring[copies] = False
         self.explore_steps[copies] = 0
         self.goal[copies] = goals[copies]
+        if self.explore_from_start and self.explore == "frontier" and self._options_on():
+            # A copy's first episode has no S_ss to travel to: with explore_from_start it explores from S at once.
+            self.exploring |= copies & (self.episodes == 0)
         if self.eta <= 0 or self.counts.total_visits == 0:
             return
         eligible = copies & (self.episodes > 0)

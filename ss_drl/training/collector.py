@@ -199,7 +199,7 @@ class MazeCollector:
                     end_state=int(end_cells[e]),
                     new_moves=int(self.ep_new_moves[e]),
                     new_moves_after_ss=int(self.ep_new_moves_after_ss[e]) if used else 0,
-                    explore_steps=int(ss.explore_steps[e]) if used else 0,
+                    explore_steps=0 if ss is None else int(ss.explore_steps[e]),
                     ss_frontier_steps=int(self.ss_frontier_steps[e]) if used else -1,
                 )
             )

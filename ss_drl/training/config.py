@@ -201,6 +201,7 @@ def validate_config(cfg: DictConfig) -> None:
     _choice(cfg, "smart_start.select", SmartStart.SELECT)
     _choice(cfg, "smart_start.explore", SmartStart.EXPLORE)
     _boolean(cfg, "smart_start.explore_after_goal")
+    _boolean(cfg, "smart_start.explore_from_start")
     if name == "frontier":
         _frontier_run(cfg)
     # logger

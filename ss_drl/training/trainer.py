@@ -182,6 +182,7 @@ def make_smart_start(
         explore=ss.explore,
         explore_after_goal=ss.explore_after_goal,
         guided_limit=guided_limit(ss, float(cfg.env.slip)),
+        explore_from_start=ss.explore_from_start,
     )
 
 
