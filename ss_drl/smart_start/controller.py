@@ -117,11 +117,6 @@ class SmartStart:
     def _options_on(self) -> bool:
         return self.explore_after_goal or not self.goal_found()
 
-    @property
-    def controlling(self) -> torch.Tensor:
-        """Copies whose next action the controller chooses: the guided phase and the exploration phase."""
-        return self.active | self.exploring
-
     def within(self, cells: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
         """Whether each cell is within Manhattan distance theta of its target."""
         return manhattan(cells, targets, self.maze.width) <= self.theta
