@@ -332,6 +332,20 @@ def test_stochastic_model_values_by_hand():
     assert int(plan.policy[0, 2]) == 0 and int(plan.policy[0, 1]) == 0
 
 
+def test_route_length_from_planner_values():
+    # V = gamma^(steps - 1): 1 step for V = 1, 4 steps for gamma^3, -1 (no route) for V = 0.
+    lengths = Planner.route_length(torch.tensor([1.0, GAMMA**3, 0.0]), GAMMA)
+    assert lengths.dtype == torch.float64
+    assert torch.allclose(lengths, torch.tensor([1.0, 4.0, -1.0], dtype=torch.float64))
+    # A 1 x 5 corridor walked right once, planned towards cell 4: cells 0..3 lie 4..1 steps away; the target is
+    # terminal (value 0: no route from it).
+    model = CountModel(5, 4)
+    model.update(torch.arange(4), torch.zeros(4, dtype=torch.int64), torch.arange(1, 5), torch.zeros(4))
+    plan = Planner(5, gamma=GAMMA).plan(model, 4)
+    lengths = Planner.route_length(plan.values[:, 0], GAMMA)
+    assert torch.allclose(lengths, torch.tensor([4.0, 3.0, 2.0, 1.0, -1.0], dtype=torch.float64))
+
+
 def _random_model(maze, n: int, seed: int, slip: float = 0.0) -> CountModel:
     """A partly explored model: n random (free cell, action) tries; with ``slip`` some lead to a random neighbour."""
     table = maze.transition_table()

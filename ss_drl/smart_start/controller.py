@@ -161,10 +161,8 @@ class SmartStart:
         self.target[chosen] = targets
         self.used[chosen] = True
         # V(s0) = gamma^(L - 1) on a deterministic route of L steps: the planner's own estimate of the route length.
-        start_values = plan.values[cells[chosen], torch.arange(chosen.numel())].double()
-        gamma = torch.tensor(self.planner.gamma, dtype=torch.float64)
-        length = torch.where(start_values > 0, torch.log(start_values) / torch.log(gamma) + 1, -1.0)
-        self.planned_steps[chosen] = length.round().long()
+        start_values = plan.values[cells[chosen], torch.arange(chosen.numel())]
+        self.planned_steps[chosen] = Planner.route_length(start_values, self.planner.gamma).round().long()
         there = self.within(cells[chosen], targets)
         self.active[chosen] = ~there
         self.reached[chosen] = there
@@ -184,10 +182,8 @@ class SmartStart:
         out[idx[on]] = 0
         if bool((~on).any()):
             plan = self.planner.plan_to(self.counts, terminal[~on], torch.Generator().manual_seed(0))
-            values = plan.values[targets[~on], torch.arange(int((~on).sum()))].double()
-            gamma = torch.tensor(self.planner.gamma, dtype=torch.float64)
-            steps = torch.where(values > 0, torch.log(values) / torch.log(gamma) + 1, -1.0)
-            out[idx[~on]] = steps.round().long()
+            values = plan.values[targets[~on], torch.arange(int((~on).sum()))]
+            out[idx[~on]] = Planner.route_length(values, self.planner.gamma).round().long()
         return out
 
     def guide(self, cells: torch.Tensor, action: torch.Tensor) -> torch.Tensor:

@@ -194,6 +194,18 @@ class Planner:
         return self._powers_cache
 
     @staticmethod
+    def route_length(values: torch.Tensor, gamma: float) -> torch.Tensor:
+        """The number of steps to the terminal set that planner values stand for, in float64 (-1 where unreachable).
+
+        Reward 1 on entering the terminal set and discount gamma make the value of a state ``steps`` steps away on
+        a deterministic route gamma^(steps - 1), so steps = log V / log gamma + 1 (an estimate on a stochastic
+        model). A value of 0 means that the model knows no route: -1.
+        """
+        values = values.double()
+        gamma = torch.tensor(gamma, dtype=torch.float64)
+        return torch.where(values > 0, torch.log(values) / torch.log(gamma) + 1, -1.0)
+
+    @staticmethod
     def greedy(q: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """(B, S) argmax_a of q (S, A, B), ties broken uniformly at random."""
         return random_argmax(q, dim=1, generator=generator).T.contiguous()
