@@ -1,9 +1,12 @@
-"""Shared test helpers: the repo root and in-process Hydra composition of the project's config."""
+"""Shared test helpers: the repo root, in-process Hydra composition of the project's config, and a run that crashes
+right after a checkpoint save (to resume it and compare its CSVs with an uninterrupted run's)."""
 
 from __future__ import annotations
 
+import csv
 from pathlib import Path
 
+import pytest
 from hydra import compose, initialize_config_dir
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -44,3 +47,40 @@ SHORTEST = {
     "medium_small": 35,
     "hard_small": 84,
 }
+
+#: The CSV columns that measure wall-clock time: they differ between two runs that are otherwise the same.
+WALL_CLOCK = ("wall_s", "updates_per_s")
+
+
+class Crash(Exception):
+    """A crash planted by a test."""
+
+
+def crash_after_save(trainer, saves: int) -> list[int]:
+    """Train ``trainer`` (a :class:`~ss_drl.training.trainer.Trainer`) and crash (raise :class:`Crash`, caught here)
+    right after its ``saves``-th checkpoint save, leaving its run directory as a run killed there leaves it.
+
+    Returns the env step of each save. Fails the test if the run ends before that save.
+    """
+    real_save = trainer.save_checkpoint
+    steps: list[int] = []
+
+    def save_then_crash():
+        path = real_save()
+        steps.append(trainer.collector.env_steps)
+        if len(steps) == saves:
+            raise Crash
+        return path
+
+    trainer.save_checkpoint = save_then_crash  # this instance only: a crashed trainer is not used again
+    with pytest.raises(Crash):
+        trainer.train()
+    return steps
+
+
+def rows_without_wall_clock(path: Path) -> list[list[str]]:
+    """The rows of a CSV file, header included, without the :data:`WALL_CLOCK` columns."""
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))
+    keep = [i for i, name in enumerate(rows[0]) if name not in WALL_CLOCK]
+    return [[row[i] for i in keep] for row in rows]

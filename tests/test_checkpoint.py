@@ -5,7 +5,6 @@ previous checkpoint (one warning line) when the latest cannot be read, identical
 
 from __future__ import annotations
 
-import csv
 import subprocess
 import sys
 import types
@@ -13,7 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers import ROOT, TINY, compose_cfg
+from helpers import ROOT, TINY, Crash, compose_cfg, crash_after_save, rows_without_wall_clock
 
 from ss_drl.training import checkpoint as ckpt
 from ss_drl.training.checkpoint import FORMAT, FORMAT_KEY, UnreadableCheckpoint, check_resume, resume_from, task_config
@@ -37,14 +36,6 @@ RUN = [
     "trainer.log_interval=20",  # several train.csv rows between checkpoints
     "env.max_steps=100",  # several episodes between checkpoints
 ]
-WALL_CLOCK = ("wall_s", "updates_per_s")
-
-
-def rows_without_wall_clock(path: Path) -> list[list[str]]:
-    with path.open(newline="") as f:
-        rows = list(csv.reader(f))
-    keep = [i for i, name in enumerate(rows[0]) if name not in WALL_CLOCK]
-    return [[row[i] for i in keep] for row in rows]
 
 
 def snapshot(directory: Path) -> dict[str, bytes]:
@@ -71,10 +62,6 @@ def test_save_keeps_the_previous_checkpoint(tmp_path):
     assert ckpt.read(tmp_path / CHECKPOINT_FILE)["n"] == 3
     assert ckpt.read(tmp_path / CHECKPOINT_PREV_FILE)["n"] == 2
     assert {p.name for p in tmp_path.iterdir()} == {CHECKPOINT_FILE, CHECKPOINT_PREV_FILE}  # no temp file left
-
-
-class Crash(Exception):
-    pass
 
 
 @pytest.mark.parametrize("step", [1, 2, 3])
@@ -264,7 +251,7 @@ def test_resume_with_both_checkpoints_damaged_is_refused_and_changes_nothing(tmp
 
 
 @pytest.mark.slow  # two runs of 1200 env steps
-def test_resume_past_a_truncated_checkpoint_equals_an_uninterrupted_run(tmp_path, monkeypatch):
+def test_resume_past_a_truncated_checkpoint_equals_an_uninterrupted_run(tmp_path):
     """A run of 1200 env steps crashes right after its third checkpoint (about 900 env steps), whose file is then
     cut in half. trainer.resume=true warns in one line and continues from the one before (about 600): the CSVs are
     cut back to it, and eval.csv, episodes.csv and train.csv come out as an uninterrupted run's (wall-clock columns
@@ -272,20 +259,7 @@ def test_resume_past_a_truncated_checkpoint_equals_an_uninterrupted_run(tmp_path
     full, cut = tmp_path / "full", tmp_path / "cut"
     Trainer(compose_cfg(*RUN), full).train()
 
-    crashed = Trainer(compose_cfg(*RUN), cut)
-    real_save = crashed.save_checkpoint
-    saves = []
-
-    def save_then_crash():
-        path = real_save()
-        saves.append(crashed.collector.env_steps)
-        if len(saves) == 3:
-            raise Crash
-        return path
-
-    monkeypatch.setattr(crashed, "save_checkpoint", save_then_crash)
-    with pytest.raises(Crash):
-        crashed.train()
+    saves = crash_after_save(Trainer(compose_cfg(*RUN), cut), 3)
     assert len(saves) == 3 and saves[-1] < 1200
     prev_steps = ckpt.read(cut / CHECKPOINT_PREV_FILE)["collector"]["env_steps"]
     assert prev_steps == saves[1]
