@@ -69,7 +69,7 @@ OLD_EVAL_COLUMNS = tuple(c for c in EVAL_COLUMNS if c != agg.EV_WALL)
 
 def _write_run(
     d: Path, maze, method, seed, first_goal, wall, episodes, evals, completed=True, n_episodes=None, accuracy=None,
-    eval_columns=EVAL_COLUMNS, config=None,
+    eval_columns=EVAL_COLUMNS, config=None, episode_columns=EPISODE_COLUMNS,
 ):  # fmt: skip
     """A run directory; the summary's env steps (the budget) are those of the last evaluation (0 without any).
     ``config``: the summary's resolved config (None: none, the stored ``method`` labels the run)."""
@@ -91,7 +91,7 @@ def _write_run(
         }
     )
     (d / SUMMARY_FILE).write_text(json.dumps(summary))
-    for name, columns, rows in ((EPISODES_FILE, EPISODE_COLUMNS, episodes), (EVAL_FILE, eval_columns, evals)):
+    for name, columns, rows in ((EPISODES_FILE, episode_columns, episodes), (EVAL_FILE, eval_columns, evals)):
         with (d / name).open("w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=columns, extrasaction="ignore")
             w.writeheader()
@@ -538,3 +538,24 @@ def test_learning_figure_draws_td_loss_and_mean_q_averaged_over_seeds(tmp_path):
     (runs[0].path / TRAIN_FILE).unlink()
     (runs[1].path / TRAIN_FILE).unlink()
     assert learning_figure("tiny", {"ss_her": runs}, {"ss_her": (0.0, 0.0, 1.0, 1.0)}) is None
+
+
+#: episodes.csv's columns as 7ac5009 wrote them, before the exploration measures (session 37) and MiniGrid's return.
+OLD_EPISODE_COLUMNS = tuple(
+    c for c in EPISODE_COLUMNS
+    if c not in ("new_moves", "new_moves_after_ss", "explore_steps", "ss_frontier_steps", "minigrid_return")
+)  # fmt: skip
+
+
+def test_runs_written_before_the_newer_episode_columns_still_load(tmp_path):
+    """A run directory whose episodes.csv lacks the columns added since (an issue 48 replay-only run at 7ac5009)
+    loads, with the same figures as one that has them: only the columns read are required."""
+    evals = _evals([(500, 1000, 0), (1000, 31, 1)])
+    episodes = _episodes([400, 600], [0.0, 1.0])
+    _write_run(tmp_path / "old", "easy", "ss_her", 0, 1000, 10.0, episodes, evals, episode_columns=OLD_EPISODE_COLUMNS)
+    _write_run(tmp_path / "new", "easy", "ss_her", 0, 1000, 10.0, episodes, evals)
+    header = (tmp_path / "old" / EPISODES_FILE).read_text().splitlines()[0].split(",")
+    assert "new_moves" not in header and "minigrid_return" not in header
+    old, new = agg.load_run(tmp_path / "old"), agg.load_run(tmp_path / "new")
+    for key in agg.EPISODE_NUMERIC:
+        assert np.array_equal(old.episodes[key], new.episodes[key])

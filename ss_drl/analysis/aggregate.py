@@ -77,6 +77,9 @@ SK_ACCURACY = _field(SUMMARY_KEYS, "final_greedy_accuracy")
 
 #: Numeric columns parsed from each CSV (the others, e.g. the ``ss_target`` string, are only checked for presence).
 EPISODE_NUMERIC = (EP_EPISODE, EP_ENV_STEPS, EP_LENGTH, EP_RETURN, EP_SUCCESS)
+#: The episodes.csv columns a run may lack: all but those read here (later versions added columns; older run
+#: directories still load).
+EPISODE_OPTIONAL = tuple(c for c in EPISODE_COLUMNS if c not in EPISODE_NUMERIC)
 EVAL_NUMERIC = (EV_ENV_STEPS, EV_EPISODE, EV_LENGTH, EV_SUCCESS, EV_WALL)
 #: Columns a run's eval.csv may lack (older runs): read as NaN.
 EVAL_OPTIONAL = (EV_WALL,)
@@ -229,7 +232,7 @@ def load_run(path: str | os.PathLike) -> Run:
         raise IncompleteRun(f"{SUMMARY_FILE} lacks {', '.join(missing)}")
     if summary[SK_COMPLETED] is not True:
         raise IncompleteRun(f"{SUMMARY_FILE} says {SK_COMPLETED}={json.dumps(summary[SK_COMPLETED])}")
-    episodes = read_run_csv(path / EPISODES_FILE, EPISODE_COLUMNS, EPISODE_NUMERIC)
+    episodes = read_run_csv(path / EPISODES_FILE, EPISODE_COLUMNS, EPISODE_NUMERIC, EPISODE_OPTIONAL)
     evals = read_run_csv(path / EVAL_FILE, EVAL_COLUMNS, EVAL_NUMERIC, EVAL_OPTIONAL)
     steps = evals[EV_ENV_STEPS]
     back = np.flatnonzero(np.diff(steps) < 0)
