@@ -84,3 +84,19 @@ def rows_without_wall_clock(path: Path) -> list[list[str]]:
         rows = list(csv.reader(f))
     keep = [i for i, name in enumerate(rows[0]) if name not in WALL_CLOCK]
     return [[row[i] for i in keep] for row in rows]
+
+
+def assert_resume_equals_uninterrupted(run: list[str], root: Path, saves: int = 2) -> Path:
+    """Train the run of command-line overrides ``run`` twice under ``root``: once through (``root/full``), and once
+    crashed right after its ``saves``-th checkpoint and resumed (``root/cut``); assert that the two give the same
+    episodes.csv, eval.csv and train.csv (wall clock aside). Returns the uninterrupted run's directory."""
+    from ss_drl.training.outputs import EPISODES_FILE, EVAL_FILE, TRAIN_FILE
+    from ss_drl.training.trainer import Trainer
+
+    full, cut = root / "full", root / "cut"
+    Trainer(compose_cfg(*run), full).train()
+    crash_after_save(Trainer(compose_cfg(*run), cut), saves)
+    Trainer(compose_cfg(*run, "trainer.resume=true"), cut).train()
+    for file in (EPISODES_FILE, EVAL_FILE, TRAIN_FILE):
+        assert rows_without_wall_clock(cut / file) == rows_without_wall_clock(full / file), file
+    return full

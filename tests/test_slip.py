@@ -12,14 +12,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from helpers import TINY, compose_cfg, crash_after_save, rows_without_wall_clock
+from helpers import TINY, assert_resume_equals_uninterrupted, compose_cfg
 from tensordict import TensorDict
 
 from ss_drl.envs.batched import BatchedMazeEnv
 from ss_drl.envs.gridworld import MazeEnv
 from ss_drl.envs.maze import action_probabilities, parse_maze
-from ss_drl.training.outputs import EPISODES_FILE, EVAL_FILE, SUMMARY_FILE, TRAIN_FILE
-from ss_drl.training.trainer import Trainer, dqn_settings
+from ss_drl.training.outputs import EVAL_FILE, SUMMARY_FILE
+from ss_drl.training.trainer import dqn_settings
 
 R, D, L, U = range(4)
 #: S in a corner: right leads on, down leads on, left and up bump (off the grid).
@@ -147,12 +147,7 @@ def test_a_run_with_slips_resumes_as_if_uninterrupted_and_lists_its_bounds(tmp_p
         *(o for o in TINY if not o.startswith("trainer.total_env_steps=")),
         "env.slip=0.2", "trainer.total_env_steps=1200", "trainer.checkpoint_interval=300", "env.max_steps=100",
     ]  # fmt: skip
-    full, cut = tmp_path / "full", tmp_path / "cut"
-    Trainer(compose_cfg(*run), full).train()
-    crash_after_save(Trainer(compose_cfg(*run), cut), 2)
-    Trainer(compose_cfg(*run, "trainer.resume=true"), cut).train()
-    for file in (EPISODES_FILE, EVAL_FILE, TRAIN_FILE):
-        assert rows_without_wall_clock(cut / file) == rows_without_wall_clock(full / file), file
+    full = assert_resume_equals_uninterrupted(run, tmp_path)
     summary = json.loads((full / SUMMARY_FILE).read_text())
     assert summary["bounds_in_force"] == []  # every bound of the model-bounded learner assumes deterministic moves
     maze = parse_maze((Path(__file__).parents[1] / "ss_drl" / "mazes" / "easy_small.txt").read_text())

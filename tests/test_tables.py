@@ -6,14 +6,13 @@ from __future__ import annotations
 
 import pytest
 import torch
-from helpers import TINY, compose_cfg, crash_after_save, rows_without_wall_clock
+from helpers import TINY, assert_resume_equals_uninterrupted, compose_cfg
 from tensordict import TensorDict
 
 from ss_drl.agents.tables import LazyAdam, LazyPolyak, clip_grad_norm
 from ss_drl.envs.maze import load_maze
 from ss_drl.smart_start import CountModel
-from ss_drl.training.outputs import EPISODES_FILE, EVAL_FILE, TRAIN_FILE
-from ss_drl.training.trainer import Trainer, make_agent
+from ss_drl.training.trainer import make_agent
 
 
 def test_lazy_adam_is_sparse_adam_and_moves_only_the_rows_with_a_gradient():
@@ -145,9 +144,4 @@ def test_a_run_with_sparse_tables_and_frontier_exploration_resumes_as_if_uninter
         "agent.sparse_tables=true", "smart_start.select=frontier", "smart_start.explore=frontier",
         "trainer.total_env_steps=1200", "trainer.checkpoint_interval=300", "env.max_steps=100",
     ]  # fmt: skip
-    full, cut = tmp_path / "full", tmp_path / "cut"
-    Trainer(compose_cfg(*run), full).train()
-    crash_after_save(Trainer(compose_cfg(*run), cut), 2)
-    Trainer(compose_cfg(*run, "trainer.resume=true"), cut).train()
-    for file in (EPISODES_FILE, EVAL_FILE, TRAIN_FILE):
-        assert rows_without_wall_clock(cut / file) == rows_without_wall_clock(full / file), file
+    assert_resume_equals_uninterrupted(run, tmp_path)
