@@ -42,7 +42,7 @@ def load_agent(run_dir: Path):
         raise OldCheckpoint(problem)
     cfg = OmegaConf.create(state["config"])
     maze = make_maze(cfg.env)
-    counts = CountModel(maze.n_cells)
+    counts = CountModel(maze.n_states, maze.n_actions)
     counts.load_state_dict(state["counts"])
     agent = make_agent(cfg, maze, int(cfg.seed), counts)
     agent.load_state_dict(state["agent"])
@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"evaluate.py: error: no {CHECKPOINT_FILE} in {args.run_dir}", file=sys.stderr)
         return 2
     from ss_drl.training.checkpoint import UnreadableCheckpoint
-    from ss_drl.training.figures import plot_policy
+    from ss_drl.training.figures import plot_minigrid_policy, plot_policy
     from ss_drl.training.greedy import greedy_rollout
 
     try:
@@ -73,9 +73,12 @@ def main(argv: list[str] | None = None) -> int:
         rollout = greedy_rollout(agent, maze, cfg.env.max_steps)
         print(f"episode {episode}: length {rollout.length}, success {int(rollout.success)} (optimal {optimal})")
     print(f"greedy accuracy: {rollout.accuracy:.3f} (fraction of states whose greedy action is on a shortest path)")
-    q = agent.greedy_q_values(torch.arange(maze.n_cells), torch.tensor([maze.goal_cell]))[0]
     out = args.out or args.run_dir / "greedy_policy.png"
     title = f"{cfg.experiment} seed {cfg.seed}: greedy length {rollout.length} (optimal {optimal})"
-    plot_policy(maze, q.amax(dim=-1).numpy(), rollout.path, out, title)
+    if cfg.env.get("id"):  # a MiniGrid task: its own frame with the greedy path
+        plot_minigrid_policy(maze, rollout.path, out, title)
+    else:
+        q = agent.greedy_q_values(torch.arange(maze.n_cells), torch.tensor([maze.goal_cell]))[0]
+        plot_policy(maze, q.amax(dim=-1).numpy(), rollout.path, out, title)
     print(f"wrote {out}")
     return 0

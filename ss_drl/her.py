@@ -24,6 +24,8 @@ also rebuilds its episode index from the whole storage after every write, so eac
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from tensordict import TensorDictBase
 from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
@@ -67,6 +69,7 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         gamma: float = 1.0,
         goal_steps: bool = False,
         window_states: bool = False,
+        cells: Callable[[torch.Tensor], torch.Tensor] | None = None,
     ):
         if n_step < 1:
             raise ValueError(f"n_step must be >= 1 (got {n_step})")
@@ -87,6 +90,7 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         self.n_step, self.gamma = int(n_step), float(gamma)
         self.goal_steps = bool(goal_steps)
         self.window_states = bool(window_states)
+        self.cells = cells  # a state's cell, its achieved goal (None: states are cells, as in a maze)
         shape = (self.rows, self.num_envs)
         self.ep_start = torch.zeros(shape, dtype=torch.int64)  # absolute row of the slot's episode start
         self.ep_end = torch.full(shape, -1, dtype=torch.int64)  # absolute row of its last step; -1 while running
@@ -177,7 +181,7 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         new_goal, goal_steps = self.sample_goals(index[:n_her])
         # ``data`` is a gathered copy, so its leaves are relabeled in place (cheaper than tensordict writes).
         nxt = data.get("next")
-        reached = goal_reward(nxt.get("observation")[:n_her], new_goal).unsqueeze(-1)  # (n_her, 1), like the flags
+        reached = goal_reward(self._cells(nxt.get("observation")[:n_her]), new_goal).unsqueeze(-1)  # (n_her, 1)
         truncated = nxt.get("truncated")[:n_her] & ~reached
         data.get("desired_goal")[:n_her] = new_goal
         nxt.get("desired_goal")[:n_her] = new_goal
@@ -208,8 +212,8 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         rows = t.unsqueeze(1) + offsets  # (B, n) absolute rows of the window
         in_episode = rows <= end.unsqueeze(1)
         slots = (torch.minimum(rows, end.unsqueeze(1)) % self.rows) * self.num_envs + env.unsqueeze(1)
-        achieved = self.achieved_goals(slots)  # (B, n)
-        reached = goal_reward(achieved, data.get("desired_goal").unsqueeze(1)) & in_episode
+        states = self.next_states(slots)  # (B, n)
+        reached = goal_reward(self._cells(states), data.get("desired_goal").unsqueeze(1)) & in_episode
         before = torch.cumsum(reached.long(), dim=1) - reached.long()  # goals reached before each step
         alive = in_episode & (before == 0)  # the window's steps
         m = alive.sum(dim=1)  # >= 1: step t itself is always in it
@@ -222,14 +226,14 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         storage = self._storage._storage
         truncated = storage.get(("next", "truncated"))[last_slot].reshape(-1, 1) & ~terminated
         nxt = data.get("next")
-        nxt.set("observation", achieved.gather(1, last.unsqueeze(1)).squeeze(1))
+        nxt.set("observation", states.gather(1, last.unsqueeze(1)).squeeze(1))
         nxt.set("reward", reward)
         nxt.set("terminated", terminated)
         nxt.set("truncated", truncated)
         nxt.set("done", terminated | truncated)
         data.set("n_steps", m.unsqueeze(1))
         if self.window_states:
-            data.set("window_observation", achieved)
+            data.set("window_observation", states)
 
     def sample_goals(self, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """New goals for the transitions in storage slots ``index`` by the buffer's strategy, and per item the steps
@@ -255,13 +259,21 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         later = source >= t if self.strategy != "random" else torch.zeros_like(source, dtype=torch.bool)
         return goals, torch.where(later, source - t + 1, 0)
 
-    def achieved_goals(self, slots: torch.Tensor) -> torch.Tensor:
-        """The achieved goals (next states) stored in ``slots``.
+    def next_states(self, slots: torch.Tensor) -> torch.Tensor:
+        """The next states stored in ``slots``.
 
         Gathers the one stored tensor (``LazyTensorStorage`` keeps its data in ``_storage``): ``storage[slots]``
         would gather every key.
         """
         return self._storage._storage.get(("next", "observation"))[slots]
+
+    def achieved_goals(self, slots: torch.Tensor) -> torch.Tensor:
+        """The achieved goals stored in ``slots``: the cells of the next states (the next states themselves in a
+        maze, where states are cells)."""
+        return self._cells(self.next_states(slots))
+
+    def _cells(self, states: torch.Tensor) -> torch.Tensor:
+        return states if self.cells is None else self.cells(states)
 
     # --- persistence -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict:

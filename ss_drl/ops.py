@@ -35,7 +35,10 @@ def linear_schedule(env_steps: int, start: float, end: float, decay_steps: int) 
     return start + frac * (end - start)
 
 
-def epsilon_greedy(greedy: torch.Tensor, epsilon: float, generator: torch.Generator | None = None) -> torch.Tensor:
-    """With probability ``epsilon`` a uniformly random action of the 4, else the greedy action, per entry."""
+def epsilon_greedy(
+    greedy: torch.Tensor, epsilon: float, generator: torch.Generator | None = None, n_actions: int = 4
+) -> torch.Tensor:
+    """With probability ``epsilon`` a uniformly random action of the ``n_actions``, else the greedy action, per
+    entry."""
     explore = torch.rand(greedy.shape, generator=generator) < epsilon
-    return torch.where(explore, torch.randint(0, 4, greedy.shape, generator=generator), greedy)
+    return torch.where(explore, torch.randint(0, n_actions, greedy.shape, generator=generator), greedy)

@@ -25,6 +25,14 @@ REPLAY_ONLY = ("dqn", "dqn_her", "ss", "ss_her")
 BOUNDED = tuple(f"{method}_bounded" for method in REPLAY_ONLY)
 METHODS = (*REPLAY_ONLY, *BOUNDED, "tabular", "tabular_ss", "frontier")
 MAZES = ("easy", "medium", "hard", "extreme", "easy_small", "medium_small", "hard_small")
+#: The MiniGrid groups (conf/minigrid/*.yaml): any task (``minigrid``, env.id on the command line) and the four named.
+MINIGRID = {
+    "minigrid": "default",
+    "fourrooms": "fourrooms",
+    "multiroom_n4": "multiroom_n4",
+    "multiroom_n6": "multiroom_n6",
+    "doorkey_8x8": "doorkey_8x8",
+}
 #: Every switch of the DQN learner that reads the count model (those that make a learner the model-bounded one, and
 #: the two that only refine them).
 COUNT_MODEL_SWITCHES = ("distance_floor", "distance_ceiling", "model_targets", "bound_all_actions", "optimistic_floor")
@@ -67,9 +75,11 @@ def assert_config_error(cfg, key: str, value) -> str:
 
 # --- (a) every experiment composes and validates ---
 def test_experiments_found():
-    """Every ``<maze>_<method>`` exists for the 7 shipped mazes and the 11 methods, and nothing else."""
+    """Every ``<maze>_<method>`` exists for the 7 shipped mazes and the 11 methods, every ``<task>_<method>`` for the
+    MiniGrid groups, and nothing else."""
     assert len(METHODS) == 11 and len(MAZES) == 7
-    assert EXPERIMENTS == sorted(f"{maze}_{method}" for maze in MAZES for method in METHODS)
+    worlds = (*MAZES, *MINIGRID)
+    assert EXPERIMENTS == sorted(f"{world}_{method}" for world in worlds for method in METHODS)
 
 
 def test_method_of_reads_the_longest_suffix():
@@ -86,12 +96,17 @@ def test_experiment_composes_and_validates(name):
     validate_config(cfg)
     assert cfg.experiment == name
     assert "method" not in cfg, "the method label is derived from the config (ss_drl/methods.py), never declared"
-    for key in STABLE_KEYS:
-        assert OmegaConf.select(cfg, key, default="<missing>") != "<missing>", f"{name}: {key} missing"
     method = method_of(name)
+    world = name[: -len(method) - 1]
+    for key in STABLE_KEYS:  # a MiniGrid task is named by env.id, a maze by env.layout (or env.preset)
+        key = "env.id" if key == "env.layout" and world in MINIGRID else key
+        assert OmegaConf.select(cfg, key, default="<missing>") != "<missing>", f"{name}: {key} missing"
     assert method_label(cfg) == method, f"{name} resolves to the method {method_label(cfg)!r}"
-    assert name == f"{cfg.env.preset}_{method}"
-    assert cfg.env.layout is None
+    if world in MINIGRID:
+        assert cfg.env.id.startswith("MiniGrid-") and cfg.env.layout_seed == cfg.seed
+    else:
+        assert name == f"{cfg.env.preset}_{method}"
+        assert cfg.env.layout is None
     assert cfg.env.max_steps == 1000
     base = method.removesuffix("_bounded")
     if base in ("ss", "ss_her", "tabular_ss"):
@@ -117,7 +132,7 @@ def _settings(cfg) -> dict:
 def test_a_method_is_the_same_setting_on_every_maze(method):
     """One setting per method and learner: the experiments of a method resolve to the same agent, HER and Smart Start
     settings on every shipped maze, so a maze's result is the method's, not a tuning's."""
-    settings = {maze: _settings(compose_cfg(f"{maze}_{method}")) for maze in MAZES}
+    settings = {maze: _settings(compose_cfg(f"{maze}_{method}")) for maze in (*MAZES, *MINIGRID)}
     first = settings[MAZES[0]]
     for maze in MAZES[1:]:
         diff = {k: (first[k], v) for k, v in settings[maze].items() if first[k] != v}
@@ -175,12 +190,15 @@ def test_the_model_bounded_smart_start_methods_differ_only_in_her():
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
 def test_an_experiment_only_picks_a_maze_and_a_method(name):
-    """conf/experiment/<maze>_<method>.yaml holds the two picks and its name; conf/maze/*.yaml no learning setting."""
+    """conf/experiment/<maze>_<method>.yaml holds the two picks and its name; conf/maze/*.yaml no learning setting;
+    nor does conf/minigrid/*.yaml, which sets the task (env.id) and the budget."""
     text = yaml.safe_load((CONF / "experiment" / f"{name}.yaml").read_text())
     maze, method = name[: -len(method_of(name)) - 1], method_of(name)
-    assert text == {"defaults": [{"/maze": maze}, {"/method": method}], "experiment": name}
-    maze_cfg = yaml.safe_load((CONF / "maze" / f"{maze}.yaml").read_text())
-    assert set(maze_cfg) == {"defaults", "trainer"}
+    group, file = ("minigrid", MINIGRID[maze]) if maze in MINIGRID else ("maze", maze)
+    assert text == {"defaults": [{f"/{group}": file}, {"/method": method}], "experiment": name}
+    maze_cfg = yaml.safe_load((CONF / group / f"{file}.yaml").read_text())
+    assert set(maze_cfg) - {"env"} == {"defaults", "trainer"}
+    assert set(maze_cfg.get("env", {})) <= {"id"}
     assert set(maze_cfg["trainer"]) <= {"total_env_steps", "eval_interval"}
 
 

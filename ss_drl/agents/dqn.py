@@ -240,7 +240,8 @@ class DQNAgent:
         The raw network is called directly: at one env copy this runs every env step, and the TensorDict module
         wrappers would cost several times the forward pass itself.
         """
-        return epsilon_greedy(self.q_network(observation, desired_goal).argmax(dim=-1), self.epsilon)
+        greedy = self.q_network(observation, desired_goal).argmax(dim=-1)
+        return epsilon_greedy(greedy, self.epsilon, n_actions=self.maze.n_actions)
 
     @torch.no_grad()
     def q_values(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:

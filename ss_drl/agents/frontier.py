@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
-from ss_drl.envs.maze import ACTIONS, Maze
+from ss_drl.envs.maze import Maze
 from ss_drl.graph import breadth_first
 
 UNTRIED = -1  # the memory's entry for a move not tried yet
@@ -50,7 +50,7 @@ class FrontierExplorer:
     def __init__(self, cfg, maze: Maze, seed: int = 0):
         self.maze = maze
         self.gamma = float(cfg.gamma)
-        self.n_actions = len(ACTIONS)
+        self.n_actions = maze.n_actions
         self.generator = torch.Generator().manual_seed(seed)
         self.epsilon = 0.0  # no epsilon-greedy exploration (the loop's schedule is not applied: no eps_* keys)
         self.updates = 0  # never updated
@@ -60,7 +60,7 @@ class FrontierExplorer:
 
     # --- memory ------------------------------------------------------------------------------------------------
     def _reset_memory(self) -> None:
-        n = self.maze.n_cells
+        n = self.maze.n_states
         self.successor: list[list[int]] = [[UNTRIED] * self.n_actions for _ in range(n)]  # (s, a) -> s'
         self.forward: list[list[int]] = [[] for _ in range(n)]  # known cells one move from s (bumps aside)
         self.backward: list[list[int]] = [[] for _ in range(n)]  # known cells one move into s'
@@ -110,7 +110,7 @@ class FrontierExplorer:
         nearest targets tie at random, and so do the shortest routes to the chosen one. None if none is reachable."""
         if not targets:
             return None
-        dist = [-1] * self.maze.n_cells
+        dist = [-1] * self.maze.n_states
         dist[cell] = 0
         breadth_first([cell], dist, self.forward)
         reached = [(dist[t], t) for t in targets if dist[t] >= 0]
@@ -155,9 +155,11 @@ class FrontierExplorer:
         cached = self._values.get(goal)
         if cached is not None and cached[0] == self.version:
             return cached[1]
-        dist = [-1] * self.maze.n_cells
-        dist[goal] = 0
-        breadth_first([goal], dist, self.backward)  # backwards along known moves: the steps to the goal
+        dist = [-1] * self.maze.n_states
+        goal_states = np.flatnonzero(self.maze.cells(torch.arange(self.maze.n_states)).numpy() == goal).tolist()
+        for state in goal_states:  # the goal cell's states (in a maze, the goal cell itself)
+            dist[state] = 0
+        breadth_first(goal_states, dist, self.backward)  # backwards along known moves: the steps to the goal
         dist = np.asarray(dist + [-1], dtype=np.int64)  # index -1 (an untried move) reads the extra -1
         steps = dist[np.asarray(self.successor, dtype=np.int64)]
         values = np.where(steps >= 0, self.gamma ** steps.clip(min=0), 0.0)

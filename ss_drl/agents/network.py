@@ -69,6 +69,45 @@ class CellEncoder(nn.Module):
         return code if self.cells is None else code + self.cells(cell)
 
 
+class MiniGridStateEncoder(nn.Module):
+    """Embeds the state ids of a MiniGrid task (:class:`~ss_drl.envs.minigrid.MiniGridTask`).
+
+    ``coords``: the coords MLP over the agent's cell (as :class:`CellEncoder`'s), plus learned vectors of its
+    direction, of each door's state (open, closed, locked; one vector per door and state, summed over the doors) and
+    of the carried object. ``hybrid``: those plus a learned vector per state id that starts at zero. ``embedding``: a
+    learned vector per state id only. The per-id table has a row for every state the task can reach (the task
+    enumerates them before training).
+    """
+
+    def __init__(self, task, kind: str, dim: int, sparse: bool = False):
+        super().__init__()
+        if kind not in ENCODERS:
+            raise ValueError(f"unknown encoder {kind!r} (allowed: {', '.join(ENCODERS)})")
+        self.kind = kind
+        self.register_buffer("features", torch.from_numpy(task.features).clone(), persistent=False)
+        self.cells = None  # the per-state-id table
+        if kind in ("embedding", "hybrid"):
+            self.cells = nn.Embedding(task.n_states, dim, sparse=sparse)
+            if kind == "hybrid":
+                nn.init.zeros_(self.cells.weight)
+        self.net = None
+        if kind != "embedding":
+            self.net = CellEncoder(task, "coords", dim)
+            self.direction = nn.Embedding(4, dim)
+            self.carrying = nn.Embedding(task.n_pickables + 1, dim)
+            self.doors = nn.Embedding(max(3 * task.n_doors, 1), dim)
+            self.register_buffer("door_offset", 3 * torch.arange(task.n_doors), persistent=False)
+
+    def forward(self, state: torch.Tensor) -> torch.Tensor:
+        if self.net is None:
+            return self.cells(state)
+        f = self.features[state]
+        code = self.net(f[..., 0]) + self.direction(f[..., 1]) + self.carrying(f[..., 2])
+        if self.door_offset.numel():
+            code = code + self.doors(f[..., 3:] + self.door_offset).sum(dim=-2)
+        return code if self.cells is None else code + self.cells(state)
+
+
 class GoalQNetwork(nn.Module):
     """Q(s||g, .): state and goal each embedded, concatenated, then an MLP to one value per action.
 
@@ -87,7 +126,10 @@ class GoalQNetwork(nn.Module):
         sparse_tables: bool = False,
     ):
         super().__init__()
-        self.state_encoder = CellEncoder(maze, encoder, embed_dim, sparse_tables)
+        if getattr(maze, "features", None) is not None:  # a MiniGrid task: states are ids, goals are cells
+            self.state_encoder = MiniGridStateEncoder(maze, encoder, embed_dim, sparse_tables)
+        else:
+            self.state_encoder = CellEncoder(maze, encoder, embed_dim, sparse_tables)
         self.goal_encoder = CellEncoder(maze, encoder, embed_dim, sparse_tables)
         layers, width = [], 2 * embed_dim
         for size in hidden:
@@ -95,7 +137,7 @@ class GoalQNetwork(nn.Module):
             width = size
         self.trunk = nn.Sequential(*layers)
         self.dueling = dueling
-        self.advantage = nn.Linear(width, 4)
+        self.advantage = nn.Linear(width, maze.n_actions)
         self.value = nn.Linear(width, 1) if dueling else None
 
     def forward(self, observation: torch.Tensor, desired_goal: torch.Tensor) -> torch.Tensor:

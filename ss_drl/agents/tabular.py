@@ -32,7 +32,7 @@ class TabularQAgent:
         self.maze = maze
         self.gamma = float(cfg.gamma)
         self.alpha = float(cfg.alpha)
-        self.q = np.zeros((maze.n_cells, 4), dtype=np.float64)
+        self.q = np.zeros((maze.n_states, maze.n_actions), dtype=np.float64)
         self.generator = torch.Generator().manual_seed(seed)
         self.epsilon = float(cfg.eps_start)
         self.updates = 0  # Q-learning updates (one per transition)
@@ -41,7 +41,7 @@ class TabularQAgent:
     def act(self, observation: torch.Tensor, desired_goal: torch.Tensor) -> torch.Tensor:
         """Epsilon-greedy actions (the goal is always G for the table), greedy ties broken at random."""
         greedy = random_argmax(torch.from_numpy(self.q[observation.numpy()]), dim=-1, generator=self.generator)
-        return epsilon_greedy(greedy, self.epsilon, self.generator)
+        return epsilon_greedy(greedy, self.epsilon, self.generator, self.maze.n_actions)
 
     def q_values(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         """(B, n, 4): the table's Q(s, .) for the maze's goal (the only goal a tabular agent knows)."""

@@ -48,7 +48,7 @@ import torch
 from tensordict import TensorDictBase
 
 from ss_drl.agents.settings import COUNT_MODEL_KEYS
-from ss_drl.envs.maze import ACTIONS, Maze, goal_reward
+from ss_drl.envs.maze import ACTIONS, Maze, goal_reward, state_cells
 from ss_drl.graph import breadth_first
 
 #: What a bound may assume about the environment, and what each assumption means.
@@ -63,11 +63,16 @@ ASSUMPTIONS = {
 MAZE = frozenset(ASSUMPTIONS)
 #: What a maze with stochastic moves (``env.slip > 0``) offers: everything but deterministic moves.
 STOCHASTIC_MAZE = MAZE - {"deterministic"}
+#: What a MiniGrid task (``env.id``) offers: deterministic moves with a fixed layout, but its state is not a grid cell
+#: with four moves (turns, a direction, doors, a carried object), so no distance ceiling and no optimistic floor.
+MINIGRID = MAZE - {"grid_four_moves"}
 
 
 def environment_assumptions(env_cfg) -> frozenset[str]:
-    """The assumptions an ``env`` config node's environment meets: :data:`MAZE`, or :data:`STOCHASTIC_MAZE` when
-    its moves slip (``env.slip > 0``)."""
+    """The assumptions an ``env`` config node's environment meets: :data:`MINIGRID` for a MiniGrid task
+    (``env.id``), else :data:`MAZE`, or :data:`STOCHASTIC_MAZE` when its moves slip (``env.slip > 0``)."""
+    if env_cfg.get("id"):
+        return MINIGRID
     return STOCHASTIC_MAZE if float(env_cfg.get("slip", 0) or 0) > 0 else MAZE
 
 
@@ -215,9 +220,9 @@ class _GoalDistance:
         ``all_actions``, (B, A) for every action of s_t."""
         obs = sample.get("observation")
         if all_actions:
-            k = steps.view(-1, len(ACTIONS))[obs]
+            k = steps.view(-1, self.counts.n_actions)[obs]
         else:
-            k = steps[obs * len(ACTIONS) + sample.get("action")]
+            k = steps[obs * self.counts.n_actions + sample.get("action")]
         bound = path_value(k, self.scale.gamma, self.scale.step_cost).reshape(obs.shape[0], -1)
         real = (sample.get("desired_goal") == self.goal).reshape(-1, 1)
         return torch.where(real, bound, torch.full_like(bound, other))
@@ -319,17 +324,26 @@ class DistanceFloor(_GoalDistance, Bound):
     assumes = frozenset({"count_model", "deterministic"})
 
     def __init__(
-        self, counts, goal: int, scale: Scale, all_actions: bool = False, optimistic: DistanceCeiling | None = None
+        self,
+        counts,
+        goal: int,
+        scale: Scale,
+        all_actions: bool = False,
+        optimistic: DistanceCeiling | None = None,
+        goal_states: Sequence[int] | None = None,
     ):
         super().__init__(counts, goal, scale, all_actions)
+        # The states whose cell is G (a MiniGrid task has one per direction, door state and carried object): the
+        # search starts from all of them. In a maze the goal cell is the one goal state.
+        self.goal_states = [self.goal] if goal_states is None else [int(g) for g in goal_states]
         self.optimistic = optimistic
         if optimistic is not None:
             self.assumes = self.assumes | optimistic.assumes
         self._merged: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None  # (floor, ceiling, merged)
 
     def distances(self) -> np.ndarray:
-        """(S,) d_known: the fewest observed transitions from each cell into G; 0 at G, -1 where no observed route
-        leads there. The search runs backwards from G on the count model's predecessor lists."""
+        """(S,) d_known: the fewest observed transitions from each state into G; 0 at G, -1 where no observed route
+        leads there. The search runs backwards from G's states on the count model's predecessor lists."""
         st = self.counts.structure()
         if not st.deterministic:
             raise ValueError(
@@ -339,16 +353,20 @@ class DistanceFloor(_GoalDistance, Bound):
         n_v = st.states.numel()
         dist = [-1] * (n_v + 1)
         dist[n_v] = 0  # the dummy slot (unvisited cells) is never reached
-        slot = st.derived["slot"][self.goal]
-        if slot < n_v:
-            dist[slot] = 0  # the goal is terminal and normally never departed from, so it has no slot
-        front = [y for y in into_state.get(self.goal, ()) if dist[y] < 0]
-        for y in front:
-            dist[y] = 1
+        for goal in self.goal_states:
+            slot = st.derived["slot"][goal]
+            if slot < n_v:
+                dist[slot] = 0  # the goal is terminal and normally never departed from, so it has no slot
+        front = []
+        for goal in self.goal_states:
+            for y in into_state.get(goal, ()):
+                if dist[y] < 0:
+                    dist[y] = 1
+                    front.append(y)
         breadth_first(front, dist, preds, n_v + 1)
         full = np.full(self.counts.n_states, -1, dtype=np.int64)
         full[st.states.numpy()] = dist[:n_v]
-        full[self.goal] = 0
+        full[self.goal_states] = 0
         return full
 
     def _compute(self) -> torch.Tensor:
@@ -389,19 +407,21 @@ class ModelTargets:
     key = "model_targets"
     assumes = frozenset({"count_model", "deterministic"})
 
-    def __init__(self, counts, scale: Scale):
+    def __init__(self, counts, scale: Scale, cells: Callable[[torch.Tensor], torch.Tensor] | None = None):
         self.counts, self.scale = counts, scale
+        self.cells = cells  # a state's cell, to compare it with the goal (None: states are cells, as in a maze)
 
     def successors(self, sample: TensorDictBase) -> torch.Tensor:
         """(B, A) the successor the count model observed for each action of s_t; -1 for an untried one."""
-        return self.counts.successors().view(-1, len(ACTIONS))[sample.get("observation")]
+        return self.counts.successors().view(-1, self.counts.n_actions)[sample.get("observation")]
 
     def __call__(
         self, sample: TensorDictBase, held: torch.Tensor, succ: torch.Tensor, values: torch.Tensor
     ) -> torch.Tensor:
         """(B, A) ``held`` with each action the count model has seen from s_t replaced by its one-step target;
         ``values`` (B, A): the bootstrapped values of the successors ``succ``."""
-        entered = goal_reward(succ, sample.get("desired_goal").reshape(-1, 1))
+        reached = succ if self.cells is None else self.cells(succ.clamp(min=0))  # untried (-1) is masked below
+        entered = goal_reward(reached, sample.get("desired_goal").reshape(-1, 1))
         reward = learner_reward(entered.to(torch.float32), None, self.scale.gamma, self.scale.step_cost)
         target = reward + self.scale.gamma * (~entered).to(values.dtype) * values
         return torch.where(succ >= 0, target, held)
@@ -520,7 +540,7 @@ class TDTarget:
 
     def taken(self, sample: TensorDictBase, bootstrap: Bootstrap) -> torch.Tensor:
         """(B, 1) the target of the taken action a_t (the first part of :meth:`__call__`)."""
-        n_actions = len(ACTIONS)
+        n_actions = self.model_targets.counts.n_actions if self.model_targets is not None else len(ACTIONS)
         return self(sample, torch.zeros(sample.batch_size[0], n_actions), bootstrap)[0]
 
     def others(self, sample: TensorDictBase, q_all: torch.Tensor, bootstrap: Bootstrap) -> torch.Tensor | None:
@@ -591,10 +611,12 @@ def make_td_target(
     ceiling = None
     if settings.distance_ceiling:
         ceiling = DistanceCeiling(counts, maze.height, maze.width, maze.goal_cell, scale, settings.bound_all_actions)
+    cells = state_cells(maze)
     if settings.distance_floor:
         optimistic = ceiling if settings.optimistic_floor else None
-        bounds.append(DistanceFloor(counts, maze.goal_cell, scale, settings.bound_all_actions, optimistic))
+        goal_states = None if cells is None else np.flatnonzero(maze.state_cell == maze.goal_cell)
+        bounds.append(DistanceFloor(counts, maze.goal_cell, scale, settings.bound_all_actions, optimistic, goal_states))
     if ceiling is not None:
         bounds.append(ceiling)
-    model = ModelTargets(counts, scale) if settings.model_targets else None
+    model = ModelTargets(counts, scale, cells) if settings.model_targets else None
     return TDTarget(scale, bounds, model, value_range, fused, settings.successor_double_dqn)

@@ -1,12 +1,14 @@
-"""A native, batched TorchRL environment: N independent copies of one maze stepped with tensor ops.
+"""A native, batched TorchRL environment: N independent copies of one world stepped with tensor ops.
 
-The dynamics are a precomputed transition table ``next_cell[cell, action]`` (see :meth:`Maze.transition_table`),
-so one step of all N copies is a single gather. Each copy resets on its own: TorchRL's ``step_and_maybe_reset``
-resets exactly the copies whose episode ended (``terminated`` on G or ``truncated`` at ``max_steps``).
+A world is a maze (:class:`~ss_drl.envs.maze.Maze`) or a MiniGrid task with a fixed layout
+(:class:`~ss_drl.envs.minigrid.MiniGridTask`). The dynamics are its precomputed transition table
+``next_cell[state, action]`` (``world.transition_table()``), so one step of all N copies is a single gather. Each copy
+resets on its own: TorchRL's ``step_and_maybe_reset`` resets exactly the copies whose episode ended (``terminated``
+on G or ``truncated`` at ``max_steps``).
 
-Observation keys are flat cell indices ``row * width + col`` (int64, shape (N,)), the form the Q-network, the count
-model and the replay buffer use; ``env.maze.pos(cell)`` turns one back into (row, col):
-    ``observation``   the agent's cell; it is also the achieved goal
+Observation keys (int64, shape (N,)), the form the Q-network, the count model and the replay buffer use:
+    ``observation``   the agent's state: in a maze its cell ``row * width + col`` (``env.maze.pos(cell)`` gives
+                      (row, col)); in a MiniGrid task a state id. ``world.cells(state)`` is its achieved goal.
     ``desired_goal``  the goal's cell
 Each copy's step counter (for truncation at ``max_steps``) is env state, readable as ``env.step_count``.
 
@@ -29,7 +31,7 @@ from ss_drl.envs.maze import Maze, goal_reward, load_maze
 
 
 class BatchedMazeEnv(EnvBase):
-    """N copies of a maze, stepped at once. Same semantics as :class:`ss_drl.envs.gridworld.MazeEnv`."""
+    """N copies of a world, stepped at once. On a maze, the semantics of :class:`ss_drl.envs.gridworld.MazeEnv`."""
 
     def __init__(
         self,
@@ -47,7 +49,7 @@ class BatchedMazeEnv(EnvBase):
         if int(max_steps) < 1:
             raise ValueError(f"max_steps must be >= 1 (got {max_steps})")
         super().__init__(batch_size=torch.Size([int(num_envs)]), device=device)
-        self.maze = layout if isinstance(layout, Maze) else load_maze(layout)
+        self.maze = load_maze(layout) if isinstance(layout, (str, Path)) else layout  # a maze or a MiniGrid task
         self.num_envs = int(num_envs)
         self.max_steps = int(max_steps)
         self.slip = float(slip)
@@ -55,7 +57,8 @@ class BatchedMazeEnv(EnvBase):
         self.width = self.maze.width
         n = self.num_envs
         self.next_cell = torch.as_tensor(self.maze.transition_table(), device=self.device)
-        self.start_cell = self.maze.start_cell
+        self.start_cell = self.maze.start_state
+        self.n_actions = self.maze.n_actions
         self._goal_cell = torch.full((n,), self.maze.goal_cell, dtype=torch.int64, device=self.device)
         # Mutable env state lives in a plain dict: rebinding an attribute of an nn.Module costs more than a step.
         self._state = {
@@ -63,10 +66,10 @@ class BatchedMazeEnv(EnvBase):
             "steps": torch.zeros(n, dtype=torch.int64, device=self.device),
         }
 
-        h, w = self.maze.height, self.maze.width
-        cell_spec = Bounded(low=0, high=h * w - 1, shape=(n,), dtype=torch.int64, device=self.device)
-        self.observation_spec = Composite(observation=cell_spec, desired_goal=cell_spec.clone(), shape=(n,))
-        self.action_spec = Categorical(4, shape=(n,), dtype=torch.int64, device=self.device)
+        state_spec = Bounded(low=0, high=self.maze.n_states - 1, shape=(n,), dtype=torch.int64, device=self.device)
+        cell_spec = Bounded(low=0, high=self.maze.n_cells - 1, shape=(n,), dtype=torch.int64, device=self.device)
+        self.observation_spec = Composite(observation=state_spec, desired_goal=cell_spec, shape=(n,))
+        self.action_spec = Categorical(self.n_actions, shape=(n,), dtype=torch.int64, device=self.device)
         self.reward_spec = Unbounded(shape=(n, 1), dtype=torch.float32, device=self.device)
         self.done_spec = Composite(
             done=Categorical(2, shape=(n, 1), dtype=torch.bool, device=self.device),
@@ -107,13 +110,13 @@ class BatchedMazeEnv(EnvBase):
         action = tensordict.get("action").reshape(self.num_envs)
         if self.slip > 0:
             slipped = torch.rand(self.num_envs, generator=self.generator, device=self.device) < self.slip
-            drawn = torch.randint(0, 4, (self.num_envs,), generator=self.generator, device=self.device)
+            drawn = torch.randint(0, self.n_actions, (self.num_envs,), generator=self.generator, device=self.device)
             action = torch.where(slipped, drawn, action)
         # A new tensor each step (never updated in place), so earlier observations stay valid.
         cell = state["cell"] = self.next_cell[state["cell"], action]
         steps = state["steps"]
         steps += 1
-        terminated = goal_reward(cell, self._goal_cell).unsqueeze(-1)
+        terminated = goal_reward(self.maze.cells(cell), self._goal_cell).unsqueeze(-1)
         truncated = (steps >= self.max_steps).unsqueeze(-1) & ~terminated
         out = {
             "observation": cell,

@@ -38,6 +38,12 @@ def goal_reward(achieved, goal):
     return achieved == goal
 
 
+def state_cells(world):
+    """``world.cells`` (a state's cell, its achieved goal) where states are not cells (a MiniGrid task); None in a
+    maze, whose states are its cells, so that maze code paths stay as they are."""
+    return None if isinstance(world, Maze) else world.cells
+
+
 #: Preset name -> file shipped in ``ss_drl/mazes``.
 PRESETS = ("easy", "medium", "hard", "extreme", "easy_small", "medium_small", "hard_small")
 
@@ -89,6 +95,32 @@ class Maze:
     @property
     def start_cell(self) -> int:
         return self.cell(self.start)
+
+    # --- the world interface (shared with :class:`ss_drl.envs.minigrid.MiniGridTask`): a maze's states are its cells
+    @property
+    def n_states(self) -> int:
+        """Discrete states: every cell, walls included (flat index ``row * width + col``)."""
+        return self.n_cells
+
+    @property
+    def n_actions(self) -> int:
+        return len(ACTIONS)
+
+    @property
+    def start_state(self) -> int:
+        return self.start_cell
+
+    def cells(self, states):
+        """The cell of each state (its achieved goal): the state itself in a maze."""
+        return states
+
+    def label(self, state: int) -> str:
+        """A state as episodes.csv writes it: ``row:col``."""
+        return "{}:{}".format(*self.pos(state))
+
+    def distances_to_goal(self) -> np.ndarray:
+        """(n_states,) steps from each cell to G (-1: wall or unreachable); moves are reversible, so the BFS from G."""
+        return self.distances_from(self.goal).reshape(-1)
 
     @property
     def goal_cell(self) -> int:

@@ -100,12 +100,12 @@ class SmartStart:
         self.steps = torch.zeros(n, dtype=torch.int64)  # steps taken in the guided phase
         self.planned_steps = torch.zeros(n, dtype=torch.int64)  # route length predicted by the planner
         self.target = torch.full((n,), -1, dtype=torch.int64)  # S_ss per copy
-        self.route = torch.zeros(n, maze.n_cells, dtype=torch.int64)  # greedy planner action per cell
+        self.route = torch.zeros(n, maze.n_states, dtype=torch.int64)  # greedy planner action per cell
         self.decisions = 0
         # The exploration phase after arrival (explore != "epsilon_greedy").
         self.exploring = torch.zeros(n, dtype=torch.bool)  # in the exploration phase now
         self.explore_steps = torch.zeros(n, dtype=torch.int64)  # steps taken in it this episode
-        self.reach = torch.zeros(n, maze.n_cells, dtype=torch.bool)  # cells from which the route leads on
+        self.reach = torch.zeros(n, maze.n_states, dtype=torch.bool)  # cells from which the route leads on
         self.plan_version = torch.full((n,), -1, dtype=torch.int64)  # the model's size when the route was planned
         self.goal = torch.full((n,), -1, dtype=torch.int64)  # the episode's goal (never a frontier state)
 
@@ -119,7 +119,7 @@ class SmartStart:
 
     def within(self, cells: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
         """Whether each cell is within Manhattan distance theta of its target."""
-        return manhattan(cells, targets, self.maze.width) <= self.theta
+        return manhattan(self.maze.cells(cells), self.maze.cells(targets), self.maze.width) <= self.theta
 
     def start_episodes(self, copies: torch.Tensor, cells: torch.Tensor, goals: torch.Tensor, q_values) -> None:
         """Begin episodes in the copies of bool mask ``copies``; decide and plan their guided phases.
@@ -198,7 +198,7 @@ class SmartStart:
             return action
         planned = self.route.gather(1, cells.unsqueeze(1)).squeeze(1)
         if self.guided_epsilon > 0:
-            planned = epsilon_greedy(planned, self.guided_epsilon, self.generator)
+            planned = epsilon_greedy(planned, self.guided_epsilon, self.generator, self.counts.n_actions)
         return torch.where(self.active, planned, action)
 
     def _explore(self, cells: torch.Tensor, action: torch.Tensor) -> torch.Tensor:

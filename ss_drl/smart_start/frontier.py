@@ -26,10 +26,12 @@ class Frontier:
 
     Args:
         counts: the count model (the moves of earlier batches).
+        cells: a state's cell, to compare it with the goal (None: states are cells, as in a maze).
     """
 
-    def __init__(self, counts: CountModel):
+    def __init__(self, counts: CountModel, cells=None):
         self.counts = counts
+        self.cells = cells
         self.sync()
 
     def sync(self) -> None:
@@ -56,5 +58,8 @@ class Frontier:
         excluded."""
         open_ = self.known & ~self.tried.all(dim=1)
         mask = open_.unsqueeze(0).repeat(goals.numel(), 1)
-        mask[torch.arange(goals.numel()), goals.reshape(-1)] = False
+        if self.cells is None:
+            mask[torch.arange(goals.numel()), goals.reshape(-1)] = False
+        else:  # every state in the goal's cell
+            mask &= self.cells(torch.arange(open_.numel())).unsqueeze(0) != goals.reshape(-1, 1)
         return mask

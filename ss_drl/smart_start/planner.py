@@ -49,10 +49,21 @@ class Planner:
         theta: distance threshold: states within ``theta`` of the target count as reaching it (0: only the target).
         tol: stop when the largest change of V in a sweep is below this.
         max_sweeps: stop after this many sweeps in any case.
+        cells: a state's cell (None: states are cells, as in a maze); in a MiniGrid task the target is reached in
+            any state of the target's cell (and theta measures between cells).
     """
 
-    def __init__(self, width: int, gamma: float = 0.99, theta: int = 0, tol: float = 1e-3, max_sweeps: int = 1000):
+    def __init__(
+        self,
+        width: int,
+        gamma: float = 0.99,
+        theta: int = 0,
+        tol: float = 1e-3,
+        max_sweeps: int = 1000,
+        cells=None,
+    ):
         self.width = int(width)
+        self.cells = cells
         self.gamma = float(gamma)
         self.theta = int(theta)
         self.tol = float(tol)
@@ -61,6 +72,8 @@ class Planner:
     def terminal_mask(self, n_states: int, targets: torch.Tensor) -> torch.Tensor:
         """(S, B) bool: states within ``theta`` (Manhattan) of each target."""
         cells = torch.arange(n_states)
+        if self.cells is not None:
+            cells, targets = self.cells(cells), self.cells(targets)
         if self.theta == 0:
             return cells.unsqueeze(1) == targets.unsqueeze(0)
         return manhattan(cells.unsqueeze(1), targets.unsqueeze(0), self.width) <= self.theta

@@ -110,6 +110,34 @@ def validate_config(cfg: DictConfig) -> None:
     """Check every value a run uses; raise :class:`ConfigError` on the first bad one."""
     _number(cfg, "seed", low=0, integer=True)
     # env
+    if cfg.env.get("id") not in (None, ""):
+        _minigrid_env(cfg)
+    else:
+        _maze_env(cfg)
+    _number(cfg, "env.max_steps", low=1, integer=True)
+    _number(cfg, "env.num_envs", low=1, integer=True)
+    _number(cfg, "env.slip", low=0, high=1)
+    _trainer_and_learner(cfg)
+
+
+def _minigrid_env(cfg: DictConfig) -> None:
+    """A MiniGrid task: its id, layout seed and state cap, and the task itself (built here, so that an unsupported
+    task or one with too many states is refused before the run starts)."""
+    from ss_drl.envs.minigrid import MiniGridError, MiniGridTask
+
+    if not isinstance(cfg.env.id, str):
+        raise ConfigError(f"env.id: expected a MiniGrid id such as MiniGrid-FourRooms-v0, got {cfg.env.id!r}")
+    seed = _number(cfg, "env.layout_seed", low=0, integer=True)
+    cap = _number(cfg, "env.max_states", low=1, integer=True)
+    if float(_get(cfg, "env.slip") or 0) > 0:
+        raise ConfigError(f"env.slip: {cfg.env.slip!r} is out of range for a MiniGrid task (allowed: 0)")
+    try:
+        MiniGridTask(cfg.env.id, int(seed), int(cap))
+    except MiniGridError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def _maze_env(cfg: DictConfig) -> None:
     layout = _get(cfg, "env.layout")
     if layout in (None, ""):
         _choice(cfg, "env.preset", PRESETS)
@@ -123,9 +151,9 @@ def validate_config(cfg: DictConfig) -> None:
     except MazeError as exc:
         key = "env.preset" if layout in (None, "") else "env.layout"
         raise ConfigError(f"{key}: {exc}") from None
-    _number(cfg, "env.max_steps", low=1, integer=True)
-    _number(cfg, "env.num_envs", low=1, integer=True)
-    _number(cfg, "env.slip", low=0, high=1)
+
+
+def _trainer_and_learner(cfg: DictConfig) -> None:
     # trainer
     _number(cfg, "trainer.total_env_steps", low=0, low_open=True, integer=True)
     _number(cfg, "trainer.frames_per_batch", low=1, integer=True)

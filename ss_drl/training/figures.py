@@ -36,15 +36,37 @@ def plot_visit_counts(maze: Maze, state_counts: torch.Tensor, targets: list[int]
     """The maze coloured by N(s) (log scale), with every chosen S_ss marked (size ~ how often it was chosen)."""
     fig = Figure(figsize=(6, 6 * maze.height / maze.width + 0.5))
     ax = fig.add_subplot()
-    counts = state_counts.reshape(maze.height, maze.width).numpy()
+    # Per cell: a maze's states are its cells; a MiniGrid task's states in one cell (direction, doors, carried
+    # object) add up.
+    cells = maze.cells(torch.arange(state_counts.numel()))
+    counts = torch.zeros(maze.n_cells, dtype=state_counts.dtype).index_add_(0, cells, state_counts)
+    counts = counts.reshape(maze.height, maze.width).numpy()
     _base(ax, maze, np.maximum(counts, 0), "visits N(s)", cmap="magma", log=True)
     if targets:
-        cells, times = np.unique(np.asarray(targets), return_counts=True)
+        cells, times = np.unique(maze.cells(torch.as_tensor(targets)).numpy(), return_counts=True)
         rows, cols = np.divmod(cells, maze.width)
         ax.scatter(cols, rows, s=10 + 40 * times / times.max(), facecolors="none", edgecolors="cyan", label="S_ss")
     ax.set_title(f"{maze.name}: visit counts and {len(targets)} smart start targets")
     ax.legend(loc="upper right", fontsize=7)
     return _save(fig, path)
+
+
+def plot_minigrid_policy(task, path_states: list[int], out: Path, title: str, tile: int = 32) -> Path:
+    """The MiniGrid frame (the fully observed grid, the agent in its start state) with the greedy path drawn through
+    the cells it visits, from the start (red dot) to its end (lime star on the goal square when it gets there)."""
+    fig = Figure(figsize=(6, 6 * task.height / task.width + 0.5))
+    ax = fig.add_subplot()
+    ax.imshow(task.frame(task.start_state, tile_size=tile))
+    rows, cols = np.divmod(task.cells(torch.as_tensor(path_states)).numpy(), task.width)
+    ax.plot((cols + 0.5) * tile, (rows + 0.5) * tile, "-", color="yellow", linewidth=2.5, alpha=0.8)
+    ax.plot((cols[0] + 0.5) * tile, (rows[0] + 0.5) * tile, "o", color="red", markersize=7, label="start")
+    ax.plot((cols[-1] + 0.5) * tile, (rows[-1] + 0.5) * tile, "*", color="lime", markersize=13, markeredgecolor="k",
+            label="end")  # fmt: skip
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.set_title(title)
+    ax.legend(loc="upper right", fontsize=7)
+    return _save(fig, out)
 
 
 def plot_policy(maze: Maze, max_q: np.ndarray, path_cells: list[int], out: Path, title: str) -> Path:

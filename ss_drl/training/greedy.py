@@ -26,23 +26,24 @@ class GreedyRollout:
 
 
 def greedy_accuracy(policy: torch.Tensor, maze: Maze, goal: int | None = None) -> float:
-    """Fraction of the free cells that can reach ``goal`` (the goal itself aside) whose greedy action in
-    ``policy`` (n_cells,) leads one step closer to it. 1.0: greedy from anywhere is a shortest path.
-
-    Moves are reversible in these mazes, so the BFS distances from the goal are the distances to it.
+    """Fraction of the states that can reach ``goal`` (its own states aside) whose greedy action in ``policy``
+    (n_states,) leads one step closer to it. 1.0: greedy from anywhere is a shortest path. ``maze`` is any world
+    (a maze or a MiniGrid task); another goal than G only on a maze, where moves are reversible.
     """
-    goal = maze.goal_cell if goal is None else goal
-    dist = maze.distances_from(maze.pos(goal)).reshape(-1)
+    if goal is None or goal == maze.goal_cell:
+        dist = maze.distances_to_goal()
+    else:  # another goal cell of a maze
+        dist = maze.distances_from(maze.pos(goal)).reshape(-1)
     cells = np.flatnonzero(dist > 0)
     successor = maze.transition_table()[cells, policy.numpy()[cells]]
     return float(np.mean(dist[successor] == dist[cells] - 1))
 
 
 def greedy_policy(agent, maze: Maze, goal: int | None = None) -> torch.Tensor:
-    """(n_cells,) greedy action of every cell towards ``goal`` (default G), from one batched evaluation of Q."""
-    cells = torch.arange(maze.n_cells)
+    """(n_states,) greedy action of every state towards ``goal`` (default G), from one batched evaluation of Q."""
+    cells = torch.arange(maze.n_states)
     goal = maze.goal_cell if goal is None else goal
-    q = agent.greedy_q_values(cells, torch.tensor([goal]))[0]  # (n_cells, A)
+    q = agent.greedy_q_values(cells, torch.tensor([goal]))[0]  # (n_states, A)
     return q.argmax(dim=-1)
 
 
@@ -78,7 +79,7 @@ def evaluate_policy(
     start: int | None = None,
     goal: int | None = None,
 ) -> Evaluation:
-    """Roll ``policy`` ((n_cells,) actions) out from ``start`` (default S) for ``episodes`` episodes at once, in the
+    """Roll ``policy`` ((n_states,) actions) out from ``start`` (default S) for ``episodes`` episodes at once, in the
     env's dynamics: with probability ``slip`` each step's action is replaced by one of the four drawn uniformly
     (from ``generator``: a rand and a randint for every episode at every step while any runs). An episode ends on
     entering ``goal`` (default G) or after ``max_steps`` steps.
@@ -89,7 +90,7 @@ def evaluate_policy(
     goal = maze.goal_cell if goal is None else goal
     table = torch.from_numpy(maze.transition_table())
     n = int(episodes)
-    cells = torch.full((n,), maze.start_cell if start is None else start, dtype=torch.int64)
+    cells = torch.full((n,), maze.start_state if start is None else start, dtype=torch.int64)
     lengths = torch.full((n,), int(max_steps), dtype=torch.int64)
     done = torch.zeros(n, dtype=torch.bool)
     path, seen = [int(cells[0])], {int(cells[0])}
@@ -97,11 +98,11 @@ def evaluate_policy(
         action = policy[cells]
         if slip > 0:
             slipped = torch.rand(n, generator=generator) < slip
-            action = torch.where(slipped, torch.randint(0, 4, (n,), generator=generator), action)
+            action = torch.where(slipped, torch.randint(0, maze.n_actions, (n,), generator=generator), action)
         cells = torch.where(done, cells, table[cells, action])
         if not done[0]:
             path.append(int(cells[0]))
-        hit = (cells == goal) & ~done
+        hit = (maze.cells(cells) == goal) & ~done
         lengths[hit] = step
         done |= hit
         if bool(done.all()):
@@ -135,12 +136,13 @@ def greedy_rollout(
     accuracy = greedy_accuracy(actions, maze, goal)
     policy = actions.tolist()
     table = maze.transition_table()
-    cell = maze.start_cell if start is None else start
+    cell = maze.start_state if start is None else start
+    cell_of = maze.cells(torch.arange(maze.n_states)).tolist()
     path, seen = [cell], {cell}
     for step in range(1, max_steps + 1):
         cell = int(table[cell, policy[cell]])
         path.append(cell)
-        if cell == goal:
+        if cell_of[cell] == goal:
             return GreedyRollout(path, step, True, accuracy)
         if cell in seen:
             break

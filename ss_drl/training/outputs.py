@@ -44,6 +44,7 @@ EPISODE_COLUMNS = (
     "new_moves_after_ss",  # of them, after the guided phase (0 without one)
     "explore_steps",  # steps of Smart Start's exploration phase (smart_start.explore; 0 without one)
     "ss_frontier_steps",  # steps on the count model from S_ss to the nearest untried move at the start (-1: none)
+    "minigrid_return",  # MiniGrid's own return, 1 - 0.9 length / max_steps on reaching G, else 0 (empty on mazes)
     "wall_s",  # seconds since the run started (the last column)
 )
 

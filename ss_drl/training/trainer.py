@@ -29,7 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from ss_drl.agents import UPDATE_METRICS, Agent
 from ss_drl.envs.batched import BatchedMazeEnv
-from ss_drl.envs.maze import Maze, load_maze
+from ss_drl.envs.maze import Maze, load_maze, state_cells
 from ss_drl.methods import method_label
 from ss_drl.ops import linear_schedule
 from ss_drl.smart_start import CountModel, Frontier, Planner, SmartStart
@@ -110,7 +110,13 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def make_maze(env_cfg) -> Maze:
+def make_maze(env_cfg):
+    """The world of an ``env`` config node: a MiniGrid task with a fixed layout when ``env.id`` is set
+    (:class:`~ss_drl.envs.minigrid.MiniGridTask`), else the maze of ``env.layout`` or ``env.preset``."""
+    if env_cfg.get("id"):
+        from ss_drl.envs.minigrid import MiniGridTask
+
+        return MiniGridTask(env_cfg.id, int(env_cfg.layout_seed), int(env_cfg.max_states))
     return load_maze(env_cfg.layout if env_cfg.layout else env_cfg.preset)
 
 
@@ -140,6 +146,7 @@ def make_agent(cfg: DictConfig, maze: Maze, seed: int, counts: CountModel | None
         gamma=settings.gamma,
         goal_steps=settings.hindsight_bound,
         window_states=settings.n_step_max,
+        cells=state_cells(maze),
     )
     clip = value_range(settings.gamma, settings.step_cost, cfg.env.max_steps) if settings.clip_targets else None
     td_target = make_td_target(settings, maze, counts, clip)
@@ -164,7 +171,9 @@ def make_smart_start(
     ss = cfg.smart_start
     if ss.eta <= 0:
         return None
-    planner = Planner(maze.width, gamma=ss.gamma, theta=ss.theta, tol=ss.tol, max_sweeps=ss.max_sweeps)
+    planner = Planner(
+        maze.width, gamma=ss.gamma, theta=ss.theta, tol=ss.tol, max_sweeps=ss.max_sweeps, cells=state_cells(maze)
+    )
     generator = torch.Generator().manual_seed(seed + 1_000_003)
     return SmartStart(
         maze,
@@ -211,7 +220,7 @@ class Trainer:
         self.slip = float(cfg.env.slip)
         if self.slip > 0:
             # Rounded once, as summary.json holds it, so that plot.py's learned rule reads the same optimum.
-            self.optimal_length = round(float(self.maze.expected_steps(self.slip)[0][self.maze.start_cell]), 3)
+            self.optimal_length = round(float(self.maze.expected_steps(self.slip)[0][self.maze.start_state]), 3)
         else:
             self.optimal_length = self.maze.shortest_path_length
         episodes = cfg.trainer.eval_episodes
@@ -221,9 +230,9 @@ class Trainer:
         self.env = BatchedMazeEnv(
             self.maze, cfg.env.num_envs, cfg.env.max_steps, slip=float(cfg.env.slip), seed=int(cfg.seed) + 2_000_003
         )
-        self.counts = CountModel(self.maze.n_cells)
+        self.counts = CountModel(self.maze.n_states, self.maze.n_actions)
         self.agent = make_agent(cfg, self.maze, int(cfg.seed), self.counts)
-        self.frontier = Frontier(self.counts)
+        self.frontier = Frontier(self.counts, state_cells(self.maze))
         self.smart_start = make_smart_start(cfg, self.maze, self.counts, int(cfg.seed), self.frontier)
         self.collector = MazeCollector(
             self.env, self.agent, self.smart_start, cfg.trainer.frames_per_batch, self.frontier
@@ -348,7 +357,7 @@ class Trainer:
             self.first_goal = FirstGoal(episode.env_steps, self.episodes)
         if episode.smart_start:
             self.ss_targets.append(episode.ss_target)
-        target = "" if episode.ss_target < 0 else "{}:{}".format(*self.maze.pos(episode.ss_target))
+        target = "" if episode.ss_target < 0 else self.maze.label(episode.ss_target)
         visited = int(torch.count_nonzero(self.counts.state_counts))
         row = {
             "episode": self.episodes,
@@ -362,14 +371,19 @@ class Trainer:
             "ss_reached": int(episode.ss_reached),
             "ss_steps": episode.ss_steps,
             "epsilon": round(self.agent.epsilon, 6),
-            "end_state": "{}:{}".format(*self.maze.pos(episode.end_state)),
+            "end_state": self.maze.label(episode.end_state),
             "states_visited": visited,
             "new_moves": episode.new_moves,
             "new_moves_after_ss": episode.new_moves_after_ss,
             "explore_steps": episode.explore_steps,
             "ss_frontier_steps": episode.ss_frontier_steps,
+            "minigrid_return": "",
             "wall_s": round(time.perf_counter() - self.start_time, 3),
         }
+        if hasattr(self.maze, "minigrid_return"):
+            row["minigrid_return"] = round(
+                self.maze.minigrid_return(episode.success, episode.length, int(self.cfg.env.max_steps)), 6
+            )
         self.logger.log_episode(row)
         self._recent.append(episode.success)
         self.logger.log_metrics(

@@ -1,0 +1,259 @@
+"""MiniGrid tasks with a fixed layout (issue 50): the state graph and its ids, the optimum checked in MiniGrid itself,
+HER's achieved goal (the agent's cell), the bounds that hold, refusals in one line, resume, and a learning test."""
+
+from __future__ import annotations
+
+import json
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from helpers import ROOT, TINY, assert_resume_equals_uninterrupted, compose_cfg
+from hydra import compose, initialize_config_dir
+from tensordict import TensorDict
+
+pytest.importorskip("minigrid")
+
+from ss_drl.agents.network import GoalQNetwork  # noqa: E402
+from ss_drl.agents.targets import DistanceFloor, ModelTargets, Scale  # noqa: E402
+from ss_drl.envs.batched import BatchedMazeEnv  # noqa: E402
+from ss_drl.envs.minigrid import ACTIONS, MiniGridError, MiniGridTask  # noqa: E402
+from ss_drl.evaluate import main as evaluate_main  # noqa: E402
+from ss_drl.her import HindsightReplayBuffer  # noqa: E402
+from ss_drl.smart_start.counts import CountModel  # noqa: E402
+from ss_drl.training.config import ConfigError, validate_config  # noqa: E402
+from ss_drl.training.outputs import EPISODES_FILE, EVAL_FILE, SUMMARY_FILE  # noqa: E402
+from ss_drl.training.trainer import Trainer, dqn_settings  # noqa: E402
+
+DOORKEY = "MiniGrid-DoorKey-5x5-v0"
+FOURROOMS = "MiniGrid-FourRooms-v0"
+
+
+def shortest_actions(task: MiniGridTask) -> list[int]:
+    """One shortest action sequence from the start to the goal, read off the task's BFS distances."""
+    dist, table = task.distances_to_goal(), task.transition_table()
+    state, actions = task.start_state, []
+    while dist[state] > 0:
+        a = next(a for a in range(task.n_actions) if dist[table[state, a]] == dist[state] - 1)
+        actions.append(a)
+        state = int(table[state, a])
+    return actions
+
+
+# --- the state graph -------------------------------------------------------------------------------------------------
+def test_the_bfs_optimum_on_fourrooms_layout_0_is_a_path_replayed_in_minigrid():
+    """The optimum is the fewest actions from the start to the goal square on the true state graph. Replayed in a
+    fresh MiniGrid env (its own reset with the layout seed, its own step and reward), the path ends on the goal, with
+    MiniGrid's own reward, after exactly that many steps; and every state on it is the one the table predicts."""
+    task = MiniGridTask(FOURROOMS, 0)
+    actions = shortest_actions(task)
+    assert len(actions) == task.shortest_path_length == 15
+    env = gym.make(FOURROOMS, max_steps=1000).unwrapped
+    env.reset(seed=0)
+    table, state = task.transition_table(), task.start_state
+    for i, a in enumerate(actions):
+        _, reward, terminated, truncated, _ = env.step(ACTIONS[a])
+        state = int(table[state, a])
+        key = task.keys[state]
+        assert (int(env.agent_pos[0]), int(env.agent_pos[1]), int(env.agent_dir)) == (key.x, key.y, key.direction)
+        assert terminated == (i == len(actions) - 1) and not truncated
+    assert reward == pytest.approx(1 - 0.9 * 15 / 1000) == task.minigrid_return(True, 15, 1000)
+    assert task.cells(torch.tensor([state])).item() == task.goal_cell
+    # No shorter path: every state one step from the start is at least 14 steps from the goal.
+    assert all(task.distances_to_goal()[s] >= 14 for s in table[task.start_state])
+
+
+def test_doorkey_states_hold_the_door_and_the_key():
+    """DoorKey-5x5: the door starts locked and the key on the floor; the shortest path picks up the key (carried from
+    then on) and unlocks the door (open from then on), which only a state with both can express."""
+    task = MiniGridTask(DOORKEY, 0)
+    assert task.n_doors == 1 and task.n_pickables == 1
+    start = task.keys[task.start_state]
+    assert start.doors == (2,) and start.carrying == 0  # locked, nothing carried
+    table, state, seen = task.transition_table(), task.start_state, []
+    for a in shortest_actions(task):
+        state = int(table[state, a])
+        seen.append(task.keys[state])
+    assert seen[-1].carrying == 1 and seen[-1].doors == (0,)
+    pickup = next(i for i, k in enumerate(seen) if k.carrying == 1)
+    unlock = next(i for i, k in enumerate(seen) if k.doors == (0,))
+    assert pickup < unlock
+
+
+def test_state_ids_are_the_same_in_every_build_and_after_reset():
+    """Ids come from the search from the start, so two builds of a layout number every state alike; each reset of
+    the batched env puts every copy in the start state, id 0."""
+    a, b = MiniGridTask(DOORKEY, 3), MiniGridTask(DOORKEY, 3)
+    assert a.keys == b.keys and np.array_equal(a.transition_table(), b.transition_table())
+    assert a.start_state == 0 and a.keys[0] == a._key()  # the env is left in the start state
+    env = BatchedMazeEnv(a, num_envs=3, max_steps=5)
+    td = env.reset()
+    assert td["observation"].tolist() == [0, 0, 0] and td["desired_goal"].tolist() == [a.goal_cell] * 3
+    for _ in range(5):
+        td = env.step_and_maybe_reset(td.set("action", torch.tensor([2, 0, 4])))[1]
+    assert td["observation"].tolist() == [0, 0, 0]  # truncated at 5 steps and reset
+
+
+def test_layouts_differ_by_seed_and_a_state_cap_refuses_in_one_line():
+    assert MiniGridTask(DOORKEY, 0).goal_cell == MiniGridTask(DOORKEY, 1).goal_cell  # the goal sits in the corner
+    assert MiniGridTask(DOORKEY, 0).shortest_path_length != MiniGridTask(DOORKEY, 1).shortest_path_length
+    with pytest.raises(MiniGridError, match=r"^env\.max_states: .* more than 10 reachable states") as info:
+        MiniGridTask(DOORKEY, 0, max_states=10)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("override", "key", "words"),
+    [
+        ("env.id=MiniGrid-LavaGapS5-v0", "env.id", "lava"),
+        ("env.id=MiniGrid-NoSuchTask-v0", "env.id", "unknown environment"),
+        ("env.id=CartPole-v1", "env.id", "not a MiniGrid task"),
+        ("env.max_states=20", "env.max_states", "more than 20 reachable states"),
+        ("env.slip=0.1", "env.slip", "MiniGrid"),
+        ("env.layout_seed=-1", "env.layout_seed", "out of range"),
+    ],
+)
+def test_a_task_the_adapter_cannot_run_is_refused_in_one_line(override, key, words):
+    cfg = compose_cfg("+experiment=minigrid_ss_her", f"env.id={DOORKEY}", override)
+    with pytest.raises(ConfigError) as info:
+        validate_config(cfg)
+    message = str(info.value)
+    assert message.startswith(f"{key}: ") and words in message and "\n" not in message
+
+
+def test_the_state_encoder_tells_apart_what_the_cell_does_not():
+    """States in one cell that differ in direction, door or carried object get different codes; the per-id rows of
+    the hybrid encoder start at zero (the code is the features' at first) and there is one per reachable state; the
+    goal encoder stays over cells."""
+    task = MiniGridTask(DOORKEY, 0)
+    net = GoalQNetwork(task, "hybrid", 8, (16,))
+    states = torch.arange(task.n_states)
+    codes = net.state_encoder(states)
+    cell = task.cells(states)
+    same_cell = [(a, b) for a in range(task.n_states) for b in range(a) if cell[a] == cell[b]]
+    assert same_cell and all(not torch.allclose(codes[a], codes[b]) for a, b in same_cell)
+    assert net.state_encoder.cells.weight.shape[0] == task.n_states and not net.state_encoder.cells.weight.any()
+    assert net.goal_encoder.cells.weight.shape[0] == task.height * task.width
+    assert net(states, torch.full_like(states, task.goal_cell)).shape == (task.n_states, 5)
+
+
+# --- goals, HER and the bounds ---------------------------------------------------------------------------------------
+def test_her_relabels_with_the_agents_cell_not_its_state_id():
+    """An episode of DoorKey-5x5 stored in the HER buffer: every relabeled goal is the cell of a next state of a later
+    step of the episode (never a state id), and its reward is 1 exactly where the sample's own next state is in that
+    cell."""
+    task = MiniGridTask(DOORKEY, 0)
+    table = task.transition_table()
+    states = [task.start_state]
+    for a in shortest_actions(task):
+        states.append(int(table[states[-1], a]))
+    s, s2 = torch.tensor(states[:-1]), torch.tensor(states[1:])
+    n = s.numel()
+    assert not torch.equal(task.cells(s2), s2)  # ids and cells differ on this path
+    done = torch.zeros(n, 1, dtype=torch.bool)
+    done[-1] = True
+    batch = TensorDict(
+        {
+            "observation": s, "desired_goal": torch.full((n,), task.goal_cell),
+            "action": torch.zeros(n, dtype=torch.long),
+            "next": {"observation": s2, "desired_goal": torch.full((n,), task.goal_cell), "reward": done.float(),
+                     "terminated": done, "truncated": torch.zeros_like(done), "done": done},
+        },
+        batch_size=[n],
+    ).unsqueeze(1)  # fmt: skip
+    buffer = HindsightReplayBuffer(64, 1, 256, "future", k=10**6, generator=torch.Generator().manual_seed(0),
+                                   cells=task.cells)  # fmt: skip
+    buffer.extend(batch)
+    sample = buffer.sample(256)
+    cells_after = {t: set(task.cells(s2[t:]).tolist()) for t in range(n)}
+    position = {int(x): t for t, x in enumerate(s.tolist())}  # the path visits each state once
+    for obs, goal, nxt, reward in zip(
+        sample["observation"].tolist(), sample["desired_goal"].tolist(), sample["next", "observation"].tolist(),
+        sample["next", "reward"].squeeze(-1).tolist(),
+    ):  # fmt: skip
+        assert goal in cells_after[position[obs]]
+        assert reward == float(task.cells(torch.tensor(nxt)).item() == goal)
+    assert sample["next", "reward"].sum() > 0
+
+
+def test_on_a_fully_explored_model_the_distance_floor_is_the_true_distance():
+    """The distance floor searches back from every state in the goal's cell (one per direction, door state and carried
+    object): on a count model that has seen every transition it equals the BFS distance on the true graph."""
+    task = MiniGridTask(DOORKEY, 0)
+    table = task.transition_table()
+    live = np.flatnonzero(task.state_cell != task.goal_cell)
+    s = np.repeat(live, task.n_actions)
+    a = np.tile(np.arange(task.n_actions), live.size)
+    s2 = table[s, a]
+    counts = CountModel(task.n_states, task.n_actions)
+    reward = torch.from_numpy(task.state_cell[s2] == task.goal_cell).float()
+    counts.update(torch.from_numpy(s), torch.from_numpy(a), torch.from_numpy(s2), reward)
+    goal_states = np.flatnonzero(task.state_cell == task.goal_cell)
+    floor = DistanceFloor(counts, task.goal_cell, Scale(0.99, 0.0), goal_states=goal_states)
+    assert np.array_equal(floor.distances(), task.distances_to_goal())
+    # The model targets see the goal through the successor's cell too.
+    targets = ModelTargets(counts, Scale(0.99, 0.0), task.cells)
+    state = int(live[np.argmax(task.distances_to_goal()[live] == 1)])  # one step from the goal
+    sample = TensorDict(
+        {"observation": torch.tensor([state]), "desired_goal": torch.tensor([task.goal_cell])}, batch_size=[1]
+    )
+    succ = targets.successors(sample)
+    held = targets(sample, torch.zeros(1, task.n_actions), succ, torch.zeros(1, task.n_actions))
+    into_goal = task.cells(succ.clamp(min=0)) == task.goal_cell
+    assert into_goal.any() and torch.equal(held[into_goal], torch.ones(int(into_goal.sum())))
+
+
+def test_on_minigrid_the_bounds_that_need_a_grid_with_four_moves_are_turned_off_in_one_line(capsys):
+    """The model-bounded learner keeps what holds (deterministic moves, the count model): the hindsight bound, the
+    distance floor, the model targets; the ceiling and the optimistic floor need a grid cell with four moves."""
+    settings = dqn_settings(compose_cfg("+experiment=minigrid_ss_her_bounded", f"env.id={DOORKEY}"))
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "agent.distance_ceiling, agent.optimistic_floor" in lines[0]
+    assert settings.distance_floor and settings.model_targets and settings.hindsight_bound
+    assert not settings.distance_ceiling and not settings.optimistic_floor
+    dqn_settings(compose_cfg("+experiment=minigrid_ss_her", f"env.id={DOORKEY}"))
+    assert capsys.readouterr().err == ""  # the replay-only learner loses nothing
+    overrides = ["+experiment=minigrid_ss_her_bounded", f"env.id={DOORKEY}", "agent.distance_ceiling=true"]
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=overrides, return_hydra_config=True)  # the command line is known
+    with pytest.raises(ConfigError, match=r"^agent.distance_ceiling=true: this environment breaks"):
+        validate_config(cfg)  # set explicitly: refused, not turned off
+
+
+# --- runs ------------------------------------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_a_minigrid_run_resumes_as_if_uninterrupted(tmp_path, capsys):
+    """SS+HER (model-bounded) on DoorKey-5x5, cut after its second checkpoint and resumed: the same CSVs as an
+    uninterrupted run (the state ids, the count model over them and the env's states come back alike). Its run
+    directory then has the per-cell visit counts, and evaluate.py reads it."""
+    run = [
+        "+experiment=minigrid_ss_her_bounded", f"env.id={DOORKEY}", "env.max_steps=100",
+        *(o for o in TINY if not o.startswith("trainer.total_env_steps=")),
+        "trainer.total_env_steps=900", "trainer.checkpoint_interval=300",
+    ]  # fmt: skip
+    full = assert_resume_equals_uninterrupted(run, tmp_path)
+    summary = json.loads((full / SUMMARY_FILE).read_text())
+    assert summary["maze"] == DOORKEY and summary["optimal_length"] == 11
+    assert summary["bounds_in_force"] == ["hindsight_bound", "distance_floor", "model_targets"]
+    assert (full / "smart_start.png").is_file()  # visit counts per cell
+    # evaluate.py draws the MiniGrid frame with the greedy path.
+    assert evaluate_main([str(full), "--out", str(tmp_path / "greedy.png")]) == 0
+    assert "(optimal 11)" in capsys.readouterr().out and (tmp_path / "greedy.png").stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_replay_only_ss_her_learns_doorkey_5x5_by_the_rule(tmp_path):
+    """The seed paper's method (replay-only SS+HER, its one setting) learns DoorKey-5x5 layout 0 (a key to pick up and
+    a locked door; optimum 11 actions) by the learned rule within 4,000 env steps (seed 0 learns at 2,500): the last
+    quarter's evaluations all take the optimal 11 steps. MiniGrid's own return is recorded for every episode."""
+    cfg = compose_cfg("+experiment=minigrid_ss_her", f"env.id={DOORKEY}", "seed=0", "trainer.total_env_steps=4000")
+    summary = Trainer(cfg, tmp_path).train()
+    assert summary["optimal_length"] == 11 and summary["bounds_in_force"] == ["hindsight_bound", "n_step_max"]
+    evals = np.loadtxt(tmp_path / EVAL_FILE, delimiter=",", skiprows=1, usecols=(0, 2))
+    assert evals[0, 1] == 1000  # the untrained greedy policy does not reach the goal
+    assert summary["learned_env_step"] is not None and summary["last_quarter_within"] >= 0.9
+    assert np.all(evals[evals[:, 0] >= 3000, 1] == 11)
+    episodes = np.genfromtxt(tmp_path / EPISODES_FILE, delimiter=",", names=True)
+    expected = np.where(episodes["success"] == 1, 1 - 0.9 * episodes["length"] / 1000, 0.0)
+    assert np.allclose(episodes["minigrid_return"], expected, atol=1e-6)
