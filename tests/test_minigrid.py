@@ -257,3 +257,14 @@ def test_replay_only_ss_her_learns_doorkey_5x5_by_the_rule(tmp_path):
     episodes = np.genfromtxt(tmp_path / EPISODES_FILE, delimiter=",", names=True)
     expected = np.where(episodes["success"] == 1, 1 - 0.9 * episodes["length"] / 1000, 0.0)
     assert np.allclose(episodes["minigrid_return"], expected, atol=1e-6)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("method", "budget"), [("frontier", 1000), ("tabular_ss", 3000)])
+def test_the_baselines_learn_doorkey_5x5(tmp_path, method, budget):
+    """The frontier explorer and tabular Smart Start (Keulen's original) on DoorKey-5x5 layout 0, seed 0: both learn
+    the 11-action optimum by the rule (measured: the explorer at 500 env steps, tabular SS at 2,500)."""
+    cfg = compose_cfg(f"+experiment=minigrid_{method}", f"env.id={DOORKEY}", f"trainer.total_env_steps={budget}")
+    summary = Trainer(cfg, tmp_path).train()
+    assert summary["optimal_length"] == 11 and summary["first_goal_env_step"] is not None
+    assert summary["learned_env_step"] is not None and summary["final_eval_length"] == 11

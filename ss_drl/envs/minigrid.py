@@ -206,6 +206,7 @@ class MiniGridTask:
         self.keys = keys
         self.ids = ids
         self._table = np.asarray(table, dtype=np.int64)
+        self._distances: np.ndarray | None = None
         self.state_cell = np.array([k.y * self.width + k.x for k in keys], dtype=np.int64)
         self._state_cell = torch.from_numpy(self.state_cell)
         n_doors = len(self.doors)
@@ -249,7 +250,14 @@ class MiniGridTask:
         return self._table
 
     def distances_to_goal(self) -> np.ndarray:
-        """(n_states,) fewest actions from each state to the goal square (-1 where it cannot be reached)."""
+        """(n_states,) fewest actions from each state to the goal square (-1 where it cannot be reached); computed
+        once (every evaluation's greedy accuracy reads it)."""
+        if self._distances is None:
+            self._distances = self._search_back_from_goal()
+            self._distances.setflags(write=False)
+        return self._distances
+
+    def _search_back_from_goal(self) -> np.ndarray:
         n = self.n_states
         into: list[list[int]] = [[] for _ in range(n)]
         for s, row in enumerate(self._table.tolist()):
