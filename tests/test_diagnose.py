@@ -352,3 +352,116 @@ def test_script_on_a_tabular_smart_start_run(tmp_path):
     assert not (run / DIAGNOSIS_FILE).exists()
     assert result.stdout.count("## easy_small_tabular_ss") == 2
     assert format_markdown(diagnose_run(run, 5)) in result.stdout
+
+
+# --- a MiniGrid task ----------------------------------------------------------------------------------------------
+DOORKEY = "MiniGrid-DoorKey-5x5-v0"
+
+
+@pytest.fixture(scope="module")
+def doorkey():
+    """DoorKey-5x5 layout 0: S (3, 1) facing west, the key at (2, 1) north of it, the locked door at (1, 2), G at
+    (3, 3); 62 reachable states, 11 actions on a shortest path."""
+    pytest.importorskip("minigrid")
+    from ss_drl.envs.minigrid import MiniGridTask
+
+    return MiniGridTask(DOORKEY, 0)
+
+
+def test_exploration_before_the_first_goal_of_a_minigrid_task_by_hand(tmp_path, doorkey):
+    """episodes.csv writes a task's states as row:col:direction (0 east, 1 south, 2 west, 3 north), without the door
+    and the key, so a state's true distance is the fewest steps from any state with that label. By hand: 1:1:3 (the
+    key carried, as it must be to pass (2, 1)) 6 with the door open (right, forward twice to (1, 3), right, forward
+    twice; 7 from the state of that label whose door is locked); 3:1:2 9 (the key carried and the door open: right,
+    forward twice, right, forward twice, right, forward twice); 2:3:1 1; 1:3:1 2. Manhattan distances to G of the
+    cells: (1, 1) 4, (3, 1) 2, (2, 3) 1."""
+    rows = [
+        {"episode": 1, "env_steps": 30, "end_state": "1:1:3", "ss_target": "", "states_visited": 7},
+        {"episode": 2, "env_steps": 60, "end_state": "3:1:2", "ss_target": "1:3:1", "states_visited": 16},
+        {"episode": 3, "env_steps": 90, "end_state": "2:3:1", "ss_target": "1:1:3", "states_visited": 20},
+        {
+            "episode": 4,
+            "env_steps": 101,
+            "end_state": "3:3:1",
+            "ss_target": "2:3:1",
+            "states_visited": 24,
+            "success": 1,
+        },
+    ]
+    write_csv(tmp_path / "episodes.csv", EPISODE_COLUMNS, rows)
+    x = exploration_before_first_goal(tmp_path, doorkey)
+    assert x == {
+        "first_goal_env_step": 101,
+        "episodes": 3,
+        "env_steps": 90,
+        "states_visited": 20,
+        "free_states": 62,  # the task's reachable states, what states_visited counts
+        "end_true_distance_median": 6.0,  # of 6, 9, 1
+        "end_manhattan_distance_median": 2.0,  # of 4, 2, 1
+        "ss_target_true_distance_median": 4.0,  # of 2, 6
+    }
+    for bad, message in [
+        ("1:1", r"line 2: bad end_state value '1:1' \(expected row:col:direction\)"),
+        ("5:1:0", r"line 2: end_state 5:1:0 lies outside the 5x5 grid"),
+        ("2:2:0", r"line 2: end_state 2:2:0 is not a state of MiniGrid-DoorKey-5x5-v0"),  # a wall
+    ]:
+        write_csv(tmp_path / "episodes.csv", EPISODE_COLUMNS, [{**rows[0], "end_state": bad}, *rows[1:]])
+        with pytest.raises(DiagnoseError, match=message):
+            exploration_before_first_goal(tmp_path, doorkey)
+
+
+@pytest.mark.slow
+def test_script_on_a_minigrid_doorkey_run(tmp_path, doorkey):
+    """A short SS+HER run on DoorKey-5x5 (episodes cut at 30 steps, so that some end before the first success) is
+    diagnosed over the task's states: the buckets cover the 60 states that can reach G (the 2 states on G aside), the
+    greedy path names its states, and the exploration statistics read episodes.csv's row:col:direction."""
+    from ss_drl.training.trainer import Trainer
+
+    run = tmp_path / "run"
+    cfg = compose_cfg(
+        "+experiment=minigrid_ss_her", f"env.id={DOORKEY}", "trainer.total_env_steps=1000", "env.max_steps=30"
+    )
+    summary = Trainer(cfg, run).train()
+    result = run_script(run)
+    assert result.returncode == 0, result.stderr
+    d = json.loads((run / DIAGNOSIS_FILE).read_text())
+    assert d["maze"] == DOORKEY and d["world"] == "minigrid" and d["states"] == 62 and d["optimal_length"] == 11
+    dist = doorkey.distances_to_goal()
+    assert (dist > 0).sum() == 60 and (dist >= 11).sum() == 5
+    buckets = [(r["distances"], r["states"]) for r in d["accuracy_by_distance"]]
+    assert buckets == [("1-10", 55), ("11-20", 5)]
+    assert [(r["distances"], r["states"]) for r in d["value_error_by_distance"]] == buckets
+    assert d["value_error"]["states"] == 60
+    assert round(d["greedy_accuracy"], 4) == summary["final_greedy_accuracy"]
+    path = d["greedy_path"]
+    assert path["optimal_length"] == 11 and path["length"] == summary["final_eval_length"]
+    assert path["steps"][0]["label"] == "3:1:2" and path["steps"][0]["state"] == 0  # S, facing west
+    for s in path["steps"]:
+        row, col, _ = map(int, s["label"].split(":"))
+        assert (row, col) == (s["row"], s["col"]) and s["cell"] == row * 5 + col
+        assert s["distance"] == dist[s["state"]]
+
+    # The exploration statistics, worked out here from episodes.csv: the label's fewest steps to G over its states.
+    with (run / "episodes.csv").open(newline="") as f:
+        episodes = list(csv.DictReader(f))
+    first = next(i for i, e in enumerate(episodes) if e["success"] == "1")
+    before = episodes[:first]
+    fewest: dict[tuple[int, int, int], int] = {}
+    for key, d_ in zip(doorkey.keys, dist.tolist()):
+        label = (key.y, key.x, key.direction)
+        fewest[label] = min(fewest.get(label, d_), d_)
+    ends = [tuple(map(int, e["end_state"].split(":"))) for e in before]
+    targets = [tuple(map(int, e["ss_target"].split(":"))) for e in before if e["ss_target"]]
+    x = d["exploration"]
+    assert before and x["episodes"] == len(before) == d["training"]["first_success_episode"] - 1
+    assert x["first_goal_env_step"] == int(episodes[first]["env_steps"]) and x["env_steps"] == 30 * len(before)
+    assert x["free_states"] == 62 and 0 < x["states_visited"] <= 62
+    assert x["end_true_distance_median"] == np.median([fewest[e] for e in ends])
+    assert x["end_manhattan_distance_median"] == np.median([abs(r - 3) + abs(c - 3) for r, c, _ in ends])
+    assert x["ss_target_true_distance_median"] == (np.median([fewest[t] for t in targets]) if targets else None)
+
+    out = result.stdout
+    assert f"MiniGrid task {DOORKEY} (62 states; shortest path 11)" in out
+    assert "| 1-10 | 55 |" in out and "| 11-20 | 5 |" in out and "| step | state | cell |" in out
+    assert f"visited {x['states_visited']} of the 62 states" in out
+    assert (run / DIAGNOSIS_MD).read_text() == out

@@ -17,6 +17,14 @@ fix"). Measurements only, no fixes:
    distance to G of their smart start states. An ε-greedy phase drawn towards G by a distance that ignores walls
    ends near G in Manhattan terms but far from it in steps.
 
+The run may be on a maze or on a MiniGrid task (:class:`~ss_drl.envs.minigrid.MiniGridTask`): everything is measured
+over the world's states (a maze's states are its cells; a task's are its cell, direction, doors and carried object),
+with the distances of ``distances_to_goal()``. Where a task differs: a state counts as G when its cell is G's; the
+greedy path's steps name their state (``state``, ``label``) besides its cell; episodes.csv's states are
+``row:col:direction`` (without the doors and the carried object), so the true distance of one is the fewest steps
+to G from any state with that cell and direction (a lower bound), and the Manhattan distance is its cell's; the
+coverage is out of the task's reachable states rather than a maze's free cells.
+
 The same numbers hold for a tabular run (its ``greedy_q_values`` knows only G, which is the only goal asked for here).
 
     python scripts/diagnose.py <run dir> [<run dir> ...] [--bucket-width 10] [--out DIR]
@@ -40,7 +48,7 @@ import torch
 
 from ss_drl.analysis.aggregate import IncompleteRun, read_run_csv
 from ss_drl.analysis.tables import format_markdown_table
-from ss_drl.envs.maze import Maze
+from ss_drl.envs.maze import Maze, state_cells
 from ss_drl.methods import method_label
 from ss_drl.training.greedy import greedy_accuracy, greedy_policy, greedy_rollout
 from ss_drl.training.learned import LAST_QUARTER
@@ -72,15 +80,15 @@ def value_gamma(agent_cfg) -> float:
 
 
 def goal_distances(maze: Maze) -> np.ndarray:
-    """(n_cells,) BFS distance of every cell to G (moves are reversible, so the distances from G); -1 for walls and
-    cells that cannot reach G."""
-    return maze.distances_from(maze.goal).reshape(-1)
+    """(n_states,) fewest steps from every state to G (a maze's BFS from G, its moves being reversible; a MiniGrid
+    task's search back from G's states); -1 for walls and states that cannot reach G."""
+    return maze.distances_to_goal()
 
 
 def max_q(agent, maze: Maze) -> np.ndarray:
-    """(n_cells,) ``max_a Q(s||G, a)`` of every cell on the env's 0/1 scale, from one batched evaluation."""
+    """(n_states,) ``max_a Q(s||G, a)`` of every state on the env's 0/1 scale, from one batched evaluation."""
     with torch.no_grad():
-        q = agent.greedy_q_values(torch.arange(maze.n_cells), torch.tensor([maze.goal_cell]))[0]
+        q = agent.greedy_q_values(torch.arange(maze.n_states), torch.tensor([maze.goal_cell]))[0]
     return q.amax(dim=-1).double().cpu().numpy()
 
 
@@ -104,7 +112,7 @@ def _label(lo: int, hi: int) -> str:
 
 
 def accuracy_by_distance(policy: torch.Tensor, maze: Maze, width: int = 10) -> list[dict]:
-    """Per distance bucket, the fraction of its states whose action in ``policy`` (n_cells,) leads one step closer
+    """Per distance bucket, the fraction of its states whose action in ``policy`` (n_states,) leads one step closer
     to G: ``[{"distances", "min", "max", "states", "accuracy"}]``."""
     dist = goal_distances(maze)
     table = maze.transition_table()
@@ -125,7 +133,7 @@ def _errors(q: np.ndarray, dist: np.ndarray, gamma: float) -> np.ndarray:
 
 def value_error_by_distance(q_max: np.ndarray, maze: Maze, gamma: float, width: int = 10) -> tuple[list[dict], dict]:
     """Per distance bucket and over all free states that can reach G (G aside), the mean absolute and the mean
-    signed error of ``q_max`` (n_cells,) against the optimal ``gamma^(d - 1)``: (bucket rows, overall)."""
+    signed error of ``q_max`` (n_states,) against the optimal ``gamma^(d - 1)``: (bucket rows, overall)."""
     dist = goal_distances(maze)
     rows = []
     for lo, hi, cells in _buckets(dist, width):
@@ -155,39 +163,42 @@ def greedy_path_values(agent, maze: Maze, q_max: np.ndarray, gamma: float, max_s
     ``max_a Q(s||G, a)`` against the optimal ``gamma^(d(s) - 1)``.
 
     ``first_off_shortest`` is the first step whose successor is not one step closer to G (None when the whole path
-    is a shortest one); ``loops`` says whether the rollout stopped on a cell it had visited before.
+    is a shortest one); ``loops`` says whether the rollout stopped on a state it had visited before. In a MiniGrid
+    task each step also names its ``state`` (id) and ``label`` (``row:col:direction``), ``cell`` being its cell.
     """
     dist = goal_distances(maze)
+    cell_of = state_cells(maze)
     rollout = greedy_rollout(agent, maze, max_steps)
     path = rollout.path
     steps, first_off = [], None
-    for t, (cell, nxt) in enumerate(zip(path[:-1], path[1:])):
-        d = int(dist[cell])
+    for t, (state, nxt) in enumerate(zip(path[:-1], path[1:])):
+        d = int(dist[state])
         optimal = gamma ** (d - 1)
-        row, col = maze.pos(cell)
-        steps.append(
-            {
-                "step": t,
-                "cell": int(cell),
-                "row": row,
-                "col": col,
-                "distance": d,
-                "q_max": float(q_max[cell]),
-                "optimal": float(optimal),
-                "error": float(q_max[cell] - optimal),
-            }
+        row, col = maze.pos(state)
+        step = {"step": t, "cell": int(state) if cell_of is None else int(cell_of(torch.tensor(state)))}
+        if cell_of is not None:
+            step.update(state=int(state), label=maze.label(state))
+        step.update(
+            row=row,
+            col=col,
+            distance=d,
+            q_max=float(q_max[state]),
+            optimal=float(optimal),
+            error=float(q_max[state] - optimal),
         )
+        steps.append(step)
         if first_off is None and dist[nxt] != d - 1:
             first_off = t
     loops = (not rollout.success) and path[-1] in path[:-1]
     off = None
     if first_off is not None:
         s = steps[first_off]
-        off = {"step": first_off, "cell": s["cell"], "row": s["row"], "col": s["col"], "distance": s["distance"]}
+        keys = ("cell", "row", "col") if cell_of is None else ("cell", "state", "label", "row", "col")
+        off = {"step": first_off, **{k: s[k] for k in keys}, "distance": s["distance"]}
     return {
         "success": bool(rollout.success),
         "length": int(rollout.length),
-        "optimal_length": int(dist[maze.start_cell]),
+        "optimal_length": int(dist[maze.start_state]),
         "loops": bool(loops),
         "first_off_shortest": off,
         "mean_abs_error": float(np.mean([abs(s["error"]) for s in steps])) if steps else None,
@@ -279,14 +290,47 @@ def training_data(run_dir: Path, total_env_steps: float | None = None) -> dict:
 
 
 # --- exploration before the first goal ---------------------------------------------------------------------------
-def _cell(text: str, maze: Maze, path: Path, line: int, column: str) -> int:
+def label_distances(maze: Maze) -> dict[str, int] | None:
+    """In a MiniGrid task, the true distance to G of each label episodes.csv writes (``row:col:direction``, which
+    leaves out the doors and the carried object): the fewest steps to G from any state with that label (-1 when
+    none can reach G). None in a maze, whose labels name one state each."""
+    if state_cells(maze) is None:
+        return None
+    dist = goal_distances(maze)
+    out: dict[str, int] = {}
+    for state in range(maze.n_states):
+        label, d = maze.label(state), int(dist[state])
+        best = out.get(label, -1)
+        out[label] = d if d >= 0 and (best < 0 or d < best) else best
+    return out
+
+
+def _state(
+    text: str, maze: Maze, dist: np.ndarray, labels: dict[str, int] | None, path: Path, line: int, column: str
+) -> tuple[int, int, int]:
+    """(row, col, true distance to G) of a state written by episodes.csv: ``row:col`` in a maze (``dist``: its
+    :func:`goal_distances`), ``row:col:direction`` in a MiniGrid task (``labels``: its :func:`label_distances`),
+    whose row and column are its cell's."""
+    expected = "row:col" if labels is None else "row:col:direction"
     try:
-        row, col = (int(v) for v in text.split(":"))
+        fields = [int(v) for v in text.split(":")]
     except ValueError:
-        raise DiagnoseError(f"{path} line {line}: bad {column} value {text!r} (expected row:col)") from None
+        fields = []
+    if len(fields) != expected.count(":") + 1:
+        raise DiagnoseError(f"{path} line {line}: bad {column} value {text!r} (expected {expected})")
+    row, col = fields[:2]
     if not (0 <= row < maze.height and 0 <= col < maze.width):
-        raise DiagnoseError(f"{path} line {line}: {column} {text} lies outside the {maze.height}x{maze.width} maze")
-    return maze.cell((row, col))
+        world = "maze" if labels is None else "grid"
+        raise DiagnoseError(f"{path} line {line}: {column} {text} lies outside the {maze.height}x{maze.width} {world}")
+    if labels is None:
+        return row, col, int(dist[maze.cell((row, col))])
+    label = ":".join(map(str, fields))
+    if label not in labels:
+        raise DiagnoseError(
+            f"{path} line {line}: {column} {text} is not a state of {maze.name} (no reachable state has that cell "
+            "and direction)"
+        )
+    return row, col, labels[label]
 
 
 def _median(values: list[float]) -> float | None:
@@ -294,7 +338,11 @@ def _median(values: list[float]) -> float | None:
 
 
 def exploration_before_first_goal(run_dir: Path, maze: Maze) -> dict:
-    """Point 5, from episodes.csv; ``note`` (and no numbers) for a run from before ``end_state`` was logged."""
+    """Point 5, from episodes.csv; ``note`` (and no numbers) for a run from before ``end_state`` was logged.
+
+    In a MiniGrid task the true distance of a state written as ``row:col:direction`` is that of
+    :func:`label_distances` (a lower bound), its Manhattan distance its cell's, and ``free_states`` is the task's
+    number of reachable states (what ``states_visited`` counts), a maze's free cells otherwise."""
     path = Path(run_dir) / EPISODES_FILE
     if not path.is_file():
         return {"note": f"no {EPISODES_FILE}"}
@@ -302,7 +350,7 @@ def exploration_before_first_goal(run_dir: Path, maze: Maze) -> dict:
         rows = list(csv.DictReader(f))
     if rows and ("end_state" not in rows[0] or "states_visited" not in rows[0]):
         return {"note": f"{EPISODES_FILE} has no end_state/states_visited columns (a run from before they were logged)"}
-    dist = goal_distances(maze)
+    dist, labels = goal_distances(maze), label_distances(maze)
     goal_row, goal_col = maze.goal
     before, first_goal = [], None
     for line, row in enumerate(rows, start=2):
@@ -310,18 +358,20 @@ def exploration_before_first_goal(run_dir: Path, maze: Maze) -> dict:
             first_goal = int(row["env_steps"])
             break
         before.append((line, row))
-    ends = [_cell(r["end_state"], maze, path, line, "end_state") for line, r in before]
-    targets = [_cell(r["ss_target"], maze, path, line, "ss_target") for line, r in before if r["ss_target"]]
-    manhattan = [abs(e // maze.width - goal_row) + abs(e % maze.width - goal_col) for e in ends]
+    ends = [_state(r["end_state"], maze, dist, labels, path, line, "end_state") for line, r in before]
+    targets = [
+        _state(r["ss_target"], maze, dist, labels, path, line, "ss_target") for line, r in before if r["ss_target"]
+    ]
+    manhattan = [abs(row - goal_row) + abs(col - goal_col) for row, col, _ in ends]
     return {
         "first_goal_env_step": first_goal,
         "episodes": len(before),
         "env_steps": int(before[-1][1]["env_steps"]) if before else 0,
         "states_visited": int(before[-1][1]["states_visited"]) if before else 0,
-        "free_states": maze.n_free,
-        "end_true_distance_median": _median([float(dist[e]) for e in ends]),
+        "free_states": maze.n_free if labels is None else maze.n_states,
+        "end_true_distance_median": _median([float(d) for _, _, d in ends]),
         "end_manhattan_distance_median": _median([float(m) for m in manhattan]),
-        "ss_target_true_distance_median": _median([float(dist[t]) for t in targets]),
+        "ss_target_true_distance_median": _median([float(d) for _, _, d in targets]),
     }
 
 
@@ -370,6 +420,7 @@ def diagnose_run(run_dir: str | Path, width: int = 10) -> dict:
         "agent_gamma": float(cfg.agent.gamma),
         "value_gamma": gamma,
         "maze": maze.name,
+        **({} if state_cells(maze) is None else {"world": "minigrid", "states": maze.n_states}),
         "optimal_length": maze.shortest_path_length,
         "bucket_width": int(width),
         **diagnose_agent(agent, maze, gamma, int(cfg.env.max_steps), width),
@@ -406,10 +457,12 @@ def _path_rows(steps: list[dict], first_off: int | None) -> list[dict]:
 
 def format_markdown(d: dict) -> str:
     """One markdown section for one run's diagnosis (:func:`diagnose_run`)."""
+    task = d.get("world") == "minigrid"
+    world = f"MiniGrid task {d['maze']} ({d['states']} states; " if task else f"Maze {d['maze']} ("
     lines = [
         f"## {d['experiment']} seed {d['seed']} ({d['method']}, agent {d['agent']})",
         "",
-        f"Run: `{d['run_dir']}`. Maze {d['maze']} (shortest path {d['optimal_length']}); optimal values "
+        f"Run: `{d['run_dir']}`. {world}shortest path {d['optimal_length']}); optimal values "
         f"gamma^(d-1) with gamma {d['value_gamma']:g} (agent's gamma {d['agent_gamma']:g}).",
         "",
         f"### Greedy accuracy and value error by distance to G (buckets of {d['bucket_width']})",
@@ -444,13 +497,17 @@ def format_markdown(d: dict) -> str:
     where = (
         "it stays on a shortest path"
         if off is None
-        else f"it leaves a shortest path at step {off['step']}, in cell ({off['row']}, {off['col']}) at distance "
-        f"{off['distance']}"
+        else f"it leaves a shortest path at step {off['step']}, in "
+        + (f"state {off['label']}" if task else f"cell ({off['row']}, {off['col']})")
+        + f" at distance {off['distance']}"
     )
     if p["success"]:
         outcome = f"reaches G in {p['length']} steps (optimal {p['optimal_length']})"
     elif p["loops"]:
-        outcome = f"loops: after {len(p['steps'])} steps it is back in a cell it visited, so it never reaches G"
+        outcome = (
+            f"loops: after {len(p['steps'])} steps it is back in a {'state' if task else 'cell'} it visited, so it "
+            "never reaches G"
+        )
     else:
         outcome = f"does not reach G within {p['length']} steps"
     lines += [
@@ -466,6 +523,7 @@ def format_markdown(d: dict) -> str:
         rows = [
             [
                 s["step"],
+                *([s["label"]] if task else []),
                 f"({s['row']}, {s['col']})",
                 s["distance"],
                 _f(s["q_max"], ".4f"),
@@ -476,7 +534,8 @@ def format_markdown(d: dict) -> str:
         ]
         if len(shown) < len(p["steps"]):
             lines += [f"{len(shown)} of {len(p['steps'])} steps (all in {DIAGNOSIS_FILE}):", ""]
-        lines += [format_markdown_table(["step", "cell", "distance", "max Q", "optimal", "error"], rows), ""]
+        headers = ["step", *(["state"] if task else []), "cell", "distance", "max Q", "optimal", "error"]
+        lines += [format_markdown_table(headers, rows), ""]
 
     t = d["training"]
     lines += ["### Training data", ""]
@@ -512,10 +571,15 @@ def format_markdown(d: dict) -> str:
         reached = (
             "never reached" if x["first_goal_env_step"] is None else f"first reached at {x['first_goal_env_step']}"
         )
+        ends = (
+            "The states they end in (cell and direction) lie a median of at least"
+            if task
+            else "The cells they end in lie a median"
+        )
         lines += [
             f"- G {reached} env steps; the {x['episodes']} training episodes before it ({x['env_steps']} env steps) "
-            f"visited {x['states_visited']} of the {x['free_states']} free cells.",
-            f"- The cells they end in lie a median {_f(x['end_true_distance_median'], 'g')} steps from G "
+            f"visited {x['states_visited']} of the {x['free_states']} {'states' if task else 'free cells'}.",
+            f"- {ends} {_f(x['end_true_distance_median'], 'g')} steps from G "
             f"({_f(x['end_manhattan_distance_median'], 'g')} in Manhattan distance); their smart start states a "
             f"median {_f(x['ss_target_true_distance_median'], 'g')} steps.",
         ]
