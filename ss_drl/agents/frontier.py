@@ -156,7 +156,7 @@ class FrontierExplorer:
         if cached is not None and cached[0] == self.version:
             return cached[1]
         dist = [-1] * self.maze.n_states
-        goal_states = np.flatnonzero(self.maze.cells(torch.arange(self.maze.n_states)).numpy() == goal).tolist()
+        goal_states = self.maze.states_in(goal)
         for state in goal_states:  # the goal cell's states (in a maze, the goal cell itself)
             dist[state] = 0
         breadth_first(goal_states, dist, self.backward)  # backwards along known moves: the steps to the goal

@@ -614,7 +614,7 @@ def make_td_target(
     cells = state_cells(maze)
     if settings.distance_floor:
         optimistic = ceiling if settings.optimistic_floor else None
-        goal_states = None if cells is None else np.flatnonzero(maze.state_cell == maze.goal_cell)
+        goal_states = maze.states_in(maze.goal_cell)
         bounds.append(DistanceFloor(counts, maze.goal_cell, scale, settings.bound_all_actions, optimistic, goal_states))
     if ceiling is not None:
         bounds.append(ceiling)

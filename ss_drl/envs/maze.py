@@ -114,6 +114,10 @@ class Maze:
         """The cell of each state (its achieved goal): the state itself in a maze."""
         return states
 
+    def states_in(self, cell: int) -> list[int]:
+        """The states whose cell is ``cell``: the cell itself in a maze."""
+        return [int(cell)]
+
     def label(self, state: int) -> str:
         """A state as episodes.csv writes it: ``row:col``."""
         return "{}:{}".format(*self.pos(state))

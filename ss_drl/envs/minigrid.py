@@ -245,6 +245,10 @@ class MiniGridTask:
         """The cell of each state (its achieved goal), where a state is compared with a goal."""
         return self._state_cell[states]
 
+    def states_in(self, cell: int) -> list[int]:
+        """The states whose cell is ``cell`` (one per direction, door state and carried object that reach it)."""
+        return np.flatnonzero(self.state_cell == int(cell)).tolist()
+
     def transition_table(self) -> np.ndarray:
         """int64 (n_states, 5): the next state of every state and action (the goal's states loop on themselves)."""
         return self._table
@@ -265,7 +269,7 @@ class MiniGridTask:
                 if t != s:
                     into[t].append(s)
         dist = [-1] * n
-        front = [int(s) for s in np.flatnonzero(self.state_cell == self.goal_cell)]
+        front = self.states_in(self.goal_cell)
         for s in front:
             dist[s] = 0
         breadth_first(front, dist, into)
