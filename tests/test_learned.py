@@ -11,7 +11,18 @@ import torch
 from helpers import compose_cfg
 
 from ss_drl.training.learned import EvalRecord, Learned, learned, within_bound
-from ss_drl.training.outputs import CHECKPOINT_FILE, EVAL_COLUMNS, EVAL_FILE, SUMMARY_FILE, SUMMARY_KEYS, RunLogger
+from ss_drl.training.outputs import (
+    CHECKPOINT_FILE,
+    EPISODE_COLUMNS,
+    EPISODES_FILE,
+    EVAL_COLUMNS,
+    EVAL_FILE,
+    SUMMARY_FILE,
+    SUMMARY_KEYS,
+    TRAIN_COLUMNS,
+    TRAIN_FILE,
+    RunLogger,
+)
 from ss_drl.training.trainer import Trainer
 
 OPTIMAL = 20  # within bound: success with length <= 21
@@ -195,3 +206,15 @@ def test_resume_refuses_outputs_from_before_the_evaluation_list(tmp_path):
     (old / EVAL_FILE).write_text("env_steps,episode,eval_length,eval_success\r\n100,0,1000,0\r\n")
     with pytest.raises(ValueError, match="eval.csv has columns env_steps,episode,eval_length,eval_success but"):
         RunLogger(old, compose_cfg(*RUN), {}, resume_rows=(0, 1, 0))
+
+
+def test_an_evaluation_brings_every_csv_on_disk_up_to_date(tmp_path):
+    logger = RunLogger(tmp_path, compose_cfg(*RUN), {})
+    for k in range(3):  # fewer episodes than the 50 between episodes.csv's own flushes
+        logger.log_episode(dict.fromkeys(EPISODE_COLUMNS, k))
+    logger.log_train(dict.fromkeys(TRAIN_COLUMNS, 0))
+    logger.log_eval(dict.fromkeys(EVAL_COLUMNS, 0))
+    on_disk = {name: list(csv.reader((tmp_path / name).open(newline=""))) for name in (EPISODES_FILE, TRAIN_FILE)}
+    assert [row[0] for row in on_disk[EPISODES_FILE][1:]] == ["0", "1", "2"]
+    assert len(on_disk[TRAIN_FILE]) == 2
+    logger.close()

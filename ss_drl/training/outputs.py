@@ -232,8 +232,10 @@ class RunLogger:
 
     def log_eval(self, row: dict) -> None:
         self._eval[1].writerow([row[c] for c in EVAL_COLUMNS])
-        self._eval[0].flush()
         self.eval_rows += 1
+        # Every evaluation brings all three files on disk up to date, so that a user (or a script) reading them
+        # during a run sees each episode within one evaluation interval of its end.
+        self.flush()
 
     def log_train(self, row: dict) -> None:
         self._train[1].writerow([row[c] for c in TRAIN_COLUMNS])
