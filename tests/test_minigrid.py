@@ -122,6 +122,37 @@ def test_a_task_the_adapter_cannot_run_is_refused_in_one_line(override, key, wor
     assert message.startswith(f"{key}: ") and words in message and "\n" not in message
 
 
+@pytest.mark.parametrize("when", ["make", "reset"])
+def test_a_task_whose_package_is_missing_is_refused_in_one_line(when):
+    """MiniGrid's WFC tasks need imageio, which the minigrid extra does not install: gymnasium's
+    DependencyNotInstalled (raised when the grid is generated, or by a task's constructor) reached the user as a
+    traceback through Hydra."""
+    import gymnasium as gym
+    from minigrid.envs import EmptyEnv
+
+    missing = gym.error.DependencyNotInstalled('imageio is missing, please run `pip install "minigrid[wfc]"`')
+
+    class NeedsAPackage(EmptyEnv):
+        def __init__(self, **kwargs):
+            if when == "make":
+                raise missing
+            super().__init__(**kwargs)
+
+        def _gen_grid(self, width, height):
+            raise missing
+
+    env_id = "MiniGrid-NeedsAPackage-v0"
+    gym.register(id=env_id, entry_point=NeedsAPackage)
+    try:
+        with pytest.raises(ConfigError) as info:
+            validate_config(compose_cfg("+experiment=minigrid_ss_her", f"env.id={env_id}"))
+    finally:
+        del gym.registry[env_id]
+    message = str(info.value)
+    assert message.startswith(f"env.id: {env_id} needs a package that is not installed: imageio is missing")
+    assert "\n" not in message
+
+
 def test_the_state_encoder_tells_apart_what_the_cell_does_not():
     """States in one cell that differ in direction, door or carried object get different codes; the per-id rows of
     the hybrid encoder start at zero (the code is the features' at first) and there is one per reachable state; the

@@ -28,6 +28,7 @@ an episode can end; such a task is refused in one line.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from collections import deque
 
@@ -73,12 +74,26 @@ def make_minigrid(env_id: str):
     if not isinstance(env_id, str) or env_id not in gym.registry:
         raise MiniGridError(f"env.id: unknown environment {env_id!r} (a MiniGrid id such as MiniGrid-FourRooms-v0)")
     try:
-        env = gym.make(env_id, max_steps=2**62).unwrapped
+        with _needs_installed(env_id):
+            env = gym.make(env_id, max_steps=2**62).unwrapped
     except TypeError as exc:
         raise MiniGridError(f"env.id: {env_id} is not a MiniGrid task ({exc})") from exc
     if not isinstance(env, minigrid_env):
         raise MiniGridError(f"env.id: {env_id} is not a MiniGrid task")
     return env
+
+
+@contextlib.contextmanager
+def _needs_installed(env_id: str):
+    """A package that a task needs when it is made or its grid generated (the WFC tasks' imageio) is missing: one
+    line naming it, not gymnasium's traceback."""
+    import gymnasium as gym
+
+    try:
+        yield
+    except gym.error.DependencyNotInstalled as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise MiniGridError(f"env.id: {env_id} needs a package that is not installed: {reason}") from exc
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,7 +124,8 @@ class MiniGridTask:
     def __init__(self, env_id: str, layout_seed: int = 0, max_states: int = 100_000):
         self.env_id, self.layout_seed, self.max_states = env_id, int(layout_seed), int(max_states)
         env = self.env = make_minigrid(env_id)
-        env.reset(seed=self.layout_seed)
+        with _needs_installed(env_id):
+            env.reset(seed=self.layout_seed)
         env.gen_obs = _no_observation  # the enumeration steps millions of times; the egocentric view is not used
         self.height, self.width = int(env.height), int(env.width)
         # The task's name (summary.json's "maze", which plot.py groups by): the id, so that a task's layout seeds,
