@@ -413,6 +413,39 @@ def test_a_lower_and_an_upper_bound_that_cross_give_the_upper():
     assert target.others(batch, torch.zeros(1, 4), lambda s, g: V[s].unsqueeze(-1)) is None
 
 
+def test_the_taken_target_alone_does_not_depend_on_the_number_of_actions():
+    """``TDTarget.taken`` built a (B, 4) stand-in for the predictions, the maze's four moves: with an all-action bound
+    and no model targets on a task of five actions (MiniGrid), the stand-in met the bound's (B, 5) and raised."""
+
+    class AllActions(HindsightBound):
+        all_actions = True
+
+        def __init__(self):
+            pass
+
+        def lower(self, sample, values):
+            return torch.tensor([[-3.0]])
+
+        def lower_all(self, sample):
+            return torch.full((1, 5), -4.0)
+
+    batch = samples([0], [RIGHT], [5], n_steps=torch.tensor([[1]]))
+    batch["next"] = TensorDict(
+        {
+            "observation": torch.tensor([1]),
+            "desired_goal": torch.tensor([5]),
+            "reward": torch.zeros(1, 1),
+            "terminated": torch.zeros(1, 1, dtype=torch.bool),
+        },
+        batch_size=[1],
+    )
+    target = TDTarget(PATH, [AllActions()])
+    bootstrap = lambda s, g: torch.full((s.numel(), 1), -9.0)  # noqa: E731
+    assert target.taken(batch, bootstrap).item() == -3.0  # -1 - 9 = -10, raised to the bound
+    held = target.others(batch, torch.full((1, 5), -6.0), bootstrap)
+    assert held.tolist() == [[-4.0] * 5]
+
+
 # --- what each bound assumes ----------------------------------------------------------------------------------------
 def bounded_settings() -> DQNSettings:
     return DQNSettings.from_config(compose_cfg("+experiment=easy_ss_her_bounded").agent)

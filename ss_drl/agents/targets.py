@@ -486,10 +486,11 @@ class TDTarget:
         )
 
     def __call__(
-        self, sample: TensorDictBase, q_all: torch.Tensor, bootstrap: Bootstrap
+        self, sample: TensorDictBase, q_all: torch.Tensor | None, bootstrap: Bootstrap
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """``(target, held)``: (B, 1) the taken action's target, and (B, A) what every action of s_t is held to (the
-        taken one's entry unused), or None when nothing holds the other actions."""
+        taken one's entry unused), or None when nothing holds the other actions or ``q_all`` (the online network's
+        predictions for s_t) is None."""
         next_obs, next_goal = sample.get(("next", "observation")), sample.get(("next", "desired_goal"))
         extra = [(b, b.bootstrap_states(sample)) for b in self.bounds]
         extra = [(b, s) for b, s in extra if s is not None]
@@ -526,7 +527,7 @@ class TDTarget:
         target = _clamp(target, lowers, [b.upper(sample) for b in self.bounds])
         if self.value_range is not None:
             target = target.clamp(*self.value_range)
-        if not self.holds_other_actions:
+        if q_all is None or not self.holds_other_actions:
             return target, None
         # 3. The other actions: the model target or the prediction, into the all-action bounds and the value range.
         held = q_all.detach()
@@ -540,8 +541,7 @@ class TDTarget:
 
     def taken(self, sample: TensorDictBase, bootstrap: Bootstrap) -> torch.Tensor:
         """(B, 1) the target of the taken action a_t (the first part of :meth:`__call__`)."""
-        n_actions = self.model_targets.counts.n_actions if self.model_targets is not None else len(ACTIONS)
-        return self(sample, torch.zeros(sample.batch_size[0], n_actions), bootstrap)[0]
+        return self(sample, None, bootstrap)[0]
 
     def others(self, sample: TensorDictBase, q_all: torch.Tensor, bootstrap: Bootstrap) -> torch.Tensor | None:
         """(B, A) what each action of s_t is held to (the second part of :meth:`__call__`)."""
