@@ -82,9 +82,11 @@ class GoalDQNLoss(LossModule):
     passes themselves (``scripts/benchmark.py --section train``). No ``td_error`` is written (the HER buffer
     samples uniformly).
 
-    The loss is the taken action's distance to its target (:meth:`TDTarget.taken`), plus, where the target holds
-    the other actions (:meth:`TDTarget.others`), each other action's distance to what it is held to. Its output
-    also holds ``q_mean`` (mean Q of the batch's actions) and ``td_abs`` (mean |TD error|), detached.
+    The loss is the taken action's distance to its target, plus, where the target holds the other actions, each
+    other action's distance to what it is held to (both from one call of :class:`TDTarget`). Both are averaged over
+    the batch, and the other actions' distances are summed over the actions: each action of s_t weighs as much as
+    the taken one, so with model targets most of the loss is on the actions not taken. Its output also holds
+    ``q_mean`` (mean Q of the batch's actions) and ``td_abs`` (mean |TD error|), detached.
     """
 
     value_network: GoalQNetwork

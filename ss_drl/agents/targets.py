@@ -9,11 +9,14 @@ For a sampled transition (s_t, a_t, g) whose window runs m steps (``n_steps``, s
 2. **Bounds** (:class:`Bound`): each gives a lower and/or an upper bound on the taken action's value, and, where it
    can, on every action of s_t. The target is then ``clamp(y, max(lower bounds), min(upper bounds))``: no target
    below the largest lower bound, none above the smallest upper bound (if they cross, the upper wins), and last
-   ``clamp(value_range)`` (``agent.clip_targets``: the values a policy can have).
+   ``clamp(value_range)`` (``agent.clip_targets``: the values a policy can have). A bound's own value is computed
+   inside the bound: the distance floor with ``optimistic_floor`` takes the ceiling's steps where it knows no route
+   into G (:meth:`DistanceFloor.floor_steps`), so that its "lower bound" there is optimism, not a bound.
 3. **The other actions** (:class:`ModelTargets`, and the all-action bounds): every action of s_t but the taken one
-   holds either the one-step target through the successor the count model observed for it or its own (detached)
-   prediction, clamped the same way into its all-action bounds and the value range. The loss adds each one's
-   distance to that held value (zero where nothing holds it elsewhere).
+   is *held to* a value, the value its prediction is regressed toward: the one-step target through the successor
+   the count model observed for it, or else its own (detached) prediction, clamped the same way into its all-action
+   bounds and the value range. The loss adds each one's distance to that held value; where neither a model target
+   nor a bound moves it, the held value is the prediction itself, and that action adds nothing.
 
 That order is the only one, and it is written once, in :meth:`TDTarget.__call__` (steps 1-3, with every bootstrap
 of the update in one call: one batched pass per network).
@@ -30,7 +33,8 @@ bound                     gives                  assumes
 ``hindsight_bound``       lower, taken action    the stored episode, deterministic moves
 ``n_step_max``            lower, taken action    the stored episode, deterministic moves
 ``distance_floor``        lower, all actions*    the count model, deterministic moves (+ grid with four moves
-                                                 with ``optimistic_floor``)
+                                                 with ``optimistic_floor``, which makes it the ceiling where no
+                                                 route into G is known: optimism, not a bound)
 ``distance_ceiling``      upper, all actions*    the count model, deterministic moves, grid with four moves
 ``model_targets``         the other actions      the count model, deterministic moves
 ========================  =====================  ==================================================================
@@ -169,8 +173,9 @@ class HindsightBound(Bound):
 class KStepMax(Bound):
     """The k-step maximum (``agent.n_step_max``): each k-step target of the sample's window, k = 1..m - 1 (no goal
     entered and no episode end before step m), is itself the return of a path the agent walked, bootstrapped, so
-    in a deterministic maze it bounds the target from below; steps of the window that head away from the goal (a
-    guided phase, an exploratory action) then no longer drag the target down."""
+    in a deterministic maze it bounds the target from below as far as the target network's values are not too high
+    (it bootstraps from them; where it crosses an upper bound, the upper wins); steps of the window that head away
+    from the goal (a guided phase, an exploratory action) then no longer drag the target down."""
 
     key = "n_step_max"
     assumes = frozenset({"stored_episode", "deterministic"})
@@ -216,8 +221,8 @@ class _GoalDistance:
         raise NotImplementedError
 
     def bound_for_g(self, sample: TensorDictBase, steps: torch.Tensor, other: float, all_actions: bool):
-        """(B, 1) ``path_value`` of ``steps`` at (s_t, a_t) for samples whose goal is G, ``other`` elsewhere; with
-        ``all_actions``, (B, A) for every action of s_t."""
+        """(B, 1) ``path_value`` of ``steps`` at (s_t, a_t) for samples whose goal is the real goal G (not a
+        relabeled goal g), ``other`` elsewhere; with ``all_actions``, (B, A) for every action of s_t."""
         obs = sample.get("observation")
         if all_actions:
             k = steps.view(-1, self.counts.n_actions)[obs]
@@ -401,8 +406,8 @@ class DistanceFloor(_GoalDistance, Bound):
 class ModelTargets:
     """One-step targets for the actions not taken (``agent.model_targets``): every action of s_t that the count
     model has seen from s_t gets ``r - step_cost + gamma V'(s'||g)`` through the successor s' it observed, for the
-    sample's goal (relabeled ones too; entering g ends). A bump's value is then its state's value minus one step,
-    however rarely it was taken."""
+    sample's goal (relabeled ones too; entering g ends). A bump (s' = s) is then held to one step's cost plus its
+    own state's discounted value (in the shortest-path form: that value minus one), however rarely it was taken."""
 
     key = "model_targets"
     assumes = frozenset({"count_model", "deterministic"})
@@ -447,10 +452,10 @@ class TDTarget:
     Every state whose value the target bootstraps (the state after the window, the bounds' extra states, the model
     targets' successors) goes through one call of the bootstrap, so one batched pass of the target network and one
     of the online network (double DQN) per update. ``fused=False`` makes the model targets' successors a call of
-    their own, as before issue 49: the same numbers to float rounding (a matrix product's sums can round
-    differently with the batch's size), and exactly the arithmetic of 7ac5009. ``successor_double=False`` values the
-    successors by the target network's own max, so that the online network's pass covers the window's states only
-    (``agent.successor_double_dqn``).
+    their own: the same numbers to float rounding (a matrix product's sums can round differently with the batch's
+    size; on the development machine the runs came out the same bit for bit, docs/notebook, session 36).
+    ``successor_double=False`` values the successors by the target network's own max, so that the online network's
+    pass covers the window's states only (``agent.successor_double_dqn``).
     """
 
     def __init__(
