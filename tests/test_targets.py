@@ -385,6 +385,21 @@ def test_fused_passes_give_the_separate_passes_targets(fused):
     torch.testing.assert_close(got[1], want[1])
 
 
+def one_step_from_0_to_1() -> TensorDict:
+    """One sample: RIGHT from cell 0 to cell 1 for goal 5, a one-step window, no reward, not terminal."""
+    batch = samples([0], [RIGHT], [5], n_steps=torch.tensor([[1]]))
+    batch["next"] = TensorDict(
+        {
+            "observation": torch.tensor([1]),
+            "desired_goal": torch.tensor([5]),
+            "reward": torch.zeros(1, 1),
+            "terminated": torch.zeros(1, 1, dtype=torch.bool),
+        },
+        batch_size=[1],
+    )
+    return batch
+
+
 def test_a_lower_and_an_upper_bound_that_cross_give_the_upper():
     """``clamp(y, low, high)`` with low > high is high, as ``min(max(y, low), high)``."""
 
@@ -398,16 +413,7 @@ def test_a_lower_and_an_upper_bound_that_cross_give_the_upper():
         def upper(self, sample):
             return self.high
 
-    batch = samples([0], [RIGHT], [5], n_steps=torch.tensor([[1]]))
-    batch["next"] = TensorDict(
-        {
-            "observation": torch.tensor([1]),
-            "desired_goal": torch.tensor([5]),
-            "reward": torch.zeros(1, 1),
-            "terminated": torch.zeros(1, 1, dtype=torch.bool),
-        },
-        batch_size=[1],
-    )
+    batch = one_step_from_0_to_1()
     target = TDTarget(PATH, [Fixed(-2.0, -6.0)])
     assert target.taken(batch, lambda s, g: V[s].unsqueeze(-1)).item() == -6.0
     assert target.others(batch, torch.zeros(1, 4), lambda s, g: V[s].unsqueeze(-1)) is None
@@ -429,16 +435,7 @@ def test_the_taken_target_alone_does_not_depend_on_the_number_of_actions():
         def lower_all(self, sample):
             return torch.full((1, 5), -4.0)
 
-    batch = samples([0], [RIGHT], [5], n_steps=torch.tensor([[1]]))
-    batch["next"] = TensorDict(
-        {
-            "observation": torch.tensor([1]),
-            "desired_goal": torch.tensor([5]),
-            "reward": torch.zeros(1, 1),
-            "terminated": torch.zeros(1, 1, dtype=torch.bool),
-        },
-        batch_size=[1],
-    )
+    batch = one_step_from_0_to_1()
     target = TDTarget(PATH, [AllActions()])
     bootstrap = lambda s, g: torch.full((s.numel(), 1), -9.0)  # noqa: E731
     assert target.taken(batch, bootstrap).item() == -3.0  # -1 - 9 = -10, raised to the bound
