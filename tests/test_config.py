@@ -166,15 +166,16 @@ def test_the_replay_only_dqn_uses_no_count_model_bound_and_the_bounded_one_all(m
 @pytest.mark.parametrize("method", REPLAY_ONLY)
 def test_a_bounded_method_is_its_replay_only_method_with_the_other_learner(method):
     """``<method>_bounded`` runs the same HER and Smart Start as ``<method>``: only the learner differs, and, with
-    Smart Start, the exploration phase after S_ss and in the first episode (``smart_start=frontier``, issue 49) in
-    place of the paper's epsilon-greedy phase, which the replay-only methods keep for reproduction."""
+    Smart Start, the exploration phase after S_ss and in the first episode, until G is first reached
+    (``smart_start=frontier``, issue 49), in place of the paper's epsilon-greedy phase, which the replay-only methods
+    keep for reproduction."""
     for maze in MAZES:
         replay_only = _settings(compose_cfg(f"{maze}_{method}"))
         bounded = _settings(compose_cfg(f"{maze}_{method}_bounded"))
         del replay_only["agent"], bounded["agent"]
         if method.startswith("ss"):
             assert replay_only["smart_start"]["explore"] == "epsilon_greedy"
-            exploration = {"explore": "frontier", "explore_from_start": True}
+            exploration = {"explore": "frontier", "explore_from_start": True, "explore_after_goal": False}
             assert bounded["smart_start"] == {**replay_only["smart_start"], **exploration}
             del replay_only["smart_start"], bounded["smart_start"]
         assert replay_only == bounded, f"{maze}_{method} and {maze}_{method}_bounded differ beyond the learner"
