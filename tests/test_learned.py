@@ -214,7 +214,9 @@ def test_an_evaluation_brings_every_csv_on_disk_up_to_date(tmp_path):
         logger.log_episode(dict.fromkeys(EPISODE_COLUMNS, k))
     logger.log_train(dict.fromkeys(TRAIN_COLUMNS, 0))
     logger.log_eval(dict.fromkeys(EVAL_COLUMNS, 0))
-    on_disk = {name: list(csv.reader((tmp_path / name).open(newline=""))) for name in (EPISODES_FILE, TRAIN_FILE)}
+    on_disk = {
+        name: list(csv.reader((tmp_path / name).read_text().splitlines())) for name in (EPISODES_FILE, TRAIN_FILE)
+    }
     assert [row[0] for row in on_disk[EPISODES_FILE][1:]] == ["0", "1", "2"]
     assert len(on_disk[TRAIN_FILE]) == 2
     logger.close()
