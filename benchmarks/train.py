@@ -205,22 +205,27 @@ BARE_OWN = (
 )
 
 
-def run_bare_update(agent_cfg, updates: int, seed: int = 0, maze: str | None = None) -> dict:
+def run_bare_update(agent_cfg, updates: int, seed: int = 0, world=None) -> dict:
     """The ceiling of an eager-PyTorch trainer: updates/s of a bare DQN update, batches made up in advance.
 
-    Without ``maze``: on SB3's Q-network for this env (the 6 coordinates of state, achieved and desired goal -> MLP
-    of the agent's hidden widths -> 4 values: the least arithmetic at this width). With ``maze`` (a preset): on the
-    experiment's own :class:`~ss_drl.agents.network.GoalQNetwork` (its encoder, embedding size, widths and dueling
-    head) over that maze's cells, so the row shows how close the trainer is to its own network's ceiling. Either
-    way a plain ``max_a Q'`` target from a copy, the same batch size, Adam and gradient clipping: no env, no replay
-    buffer, no TorchRL or tensordict, no bounds; only the PyTorch arithmetic of one forward and backward pass on
-    the batch and one target pass.
+    Without ``world``: on SB3's Q-network for this env (the 6 coordinates of state, achieved and desired goal -> MLP
+    of the agent's hidden widths -> 4 values: the least arithmetic at this width). With ``world`` (the experiment's
+    maze or MiniGrid task, :func:`~ss_drl.training.trainer.make_maze`): on the experiment's own
+    :class:`~ss_drl.agents.network.GoalQNetwork` over that world's states and goals (its encoder, embedding size,
+    widths, dueling head and, with ``agent.sparse_tables``, sparse tables stepped by the lazy Adam as the trainer
+    steps them), so the row shows how close the trainer is to its own network's ceiling. Either way a plain
+    ``max_a Q'`` target from a copy, the same batch size, Adam and gradient clipping: no env, no replay buffer, no
+    TorchRL or tensordict, no bounds; only the PyTorch arithmetic of one forward and backward pass on the batch
+    and one target pass.
     """
     import copy
 
+    from ss_drl.agents.tables import LazyAdam, clip_grad_norm, table_keys
+
     torch.manual_seed(seed)
     size = int(agent_cfg.batch_size)
-    if maze is None:
+    n_actions, sparse = 4, False
+    if world is None:
         layers, width = [], 6
         for hidden in agent_cfg.hidden:
             layers += [torch.nn.Linear(width, int(hidden)), torch.nn.ReLU()]
@@ -231,20 +236,25 @@ def run_bare_update(agent_cfg, updates: int, seed: int = 0, maze: str | None = N
             return (torch.rand(size, 6),)
     else:
         from ss_drl.agents.network import GoalQNetwork
-        from ss_drl.envs.maze import load_maze
 
-        layout = load_maze(maze)
+        sparse, n_actions = bool(agent_cfg.get("sparse_tables", False)), world.n_actions
         hidden = tuple(int(h) for h in agent_cfg.hidden)
-        net = GoalQNetwork(layout, agent_cfg.encoder, int(agent_cfg.embed_dim), hidden, bool(agent_cfg.dueling))
+        net = GoalQNetwork(world, agent_cfg.encoder, int(agent_cfg.embed_dim), hidden, bool(agent_cfg.dueling), sparse)
 
         def inputs():
-            return (torch.randint(0, layout.n_cells, (size,)), torch.randint(0, layout.n_cells, (size,)))
+            return (torch.randint(0, world.n_states, (size,)), torch.randint(0, world.n_cells, (size,)))
 
     target = copy.deepcopy(net).requires_grad_(False)
-    optimizer = torch.optim.Adam(net.parameters(), lr=float(agent_cfg.lr), fused=True)
+    params = list(net.parameters())
+    optimizers = []
+    if sparse:  # the tables by the lazy Adam, the rest by Adam, as DQNAgent steps them
+        tables = [net.get_parameter(name) for name, _ in table_keys(net)]
+        optimizers.append(LazyAdam(tables, lr=float(agent_cfg.lr)))
+        params = [p for p in params if all(p is not t for t in tables)]
+    optimizers.append(torch.optim.Adam(params, lr=float(agent_cfg.lr), fused=True))
     gamma, clip = float(agent_cfg.gamma), float(agent_cfg.grad_clip)
     batches = [
-        (inputs(), torch.randint(0, 4, (size, 1)), inputs(), torch.rand(size, 1), torch.rand(size, 1) < 0.1)
+        (inputs(), torch.randint(0, n_actions, (size, 1)), inputs(), torch.rand(size, 1), torch.rand(size, 1) < 0.1)
         for _ in range(min(updates, 64))
     ]
 
@@ -253,11 +263,15 @@ def run_bare_update(agent_cfg, updates: int, seed: int = 0, maze: str | None = N
         with torch.no_grad():
             td_target = reward + gamma * (~terminated).float() * target(*next_obs).amax(-1, keepdim=True)
         loss = torch.nn.functional.mse_loss(pred, td_target)
-        optimizer.zero_grad(set_to_none=True)
+        for optimizer in optimizers:
+            optimizer.zero_grad()
         loss.backward()
-        if clip > 0:
+        if clip > 0 and sparse:
+            clip_grad_norm(list(net.parameters()), clip)
+        elif clip > 0:
             torch.nn.utils.clip_grad_norm_(net.parameters(), clip, foreach=True)
-        optimizer.step()
+        for optimizer in optimizers:
+            optimizer.step()
 
     for batch in batches[:8]:  # warm-up
         update(*batch)
@@ -324,6 +338,14 @@ def run_sb3(env_id: str, kwargs: dict, steps: int, learning_starts: int, max_ste
     }
 
 
+def world_name(env_cfg) -> str:
+    """What an ``env`` config node trains on, as the section names it: the MiniGrid id and layout, the maze file,
+    or the preset."""
+    if env_cfg.get("id"):
+        return f"{env_cfg.id} (layout {env_cfg.layout_seed})"
+    return str(env_cfg.layout) if env_cfg.get("layout") else str(env_cfg.preset)
+
+
 def sb3_env_id(preset: str) -> str | None:
     """The registered gymnasium id of a maze preset (``SSDRL/Easy-v0`` for ``easy``), or None."""
     from ss_drl.envs import ENV_IDS
@@ -357,6 +379,7 @@ def bench_train(
     ``overrides`` (Hydra overrides) apply to the timed experiment's own runs, not to the baseline's.
     """
     from ss_drl.methods import method_label
+    from ss_drl.training.trainer import make_maze
 
     experiment = experiments[0]
     overrides = tuple(overrides)
@@ -378,10 +401,12 @@ def bench_train(
     learning_starts = int(learning_starts)
     agent, her = base.agent, base.get("her")
     deep = "hidden" in agent  # a DQN learner: it has an SB3 form and a bare-update ceiling
-    env_id = env_id or sb3_env_id(base.env.preset)
+    world = world_name(base.env)
+    # SB3 runs a gymnasium id: a preset's, never in place of a maze file or a MiniGrid task.
+    env_id = env_id or (None if base.env.get("id") or base.env.get("layout") else sb3_env_id(base.env.preset))
     mirror = method_label(base) == "dqn_her" and env_id is not None
     out = [
-        f"## train: training throughput of `{experiment}` on {base.env.preset} (median of {repeats}; {steps} timed env "
+        f"## train: training throughput of `{experiment}` on {world} (median of {repeats}; {steps} timed env "
         f"steps after learning_starts={learning_starts}; torch threads {torch.get_num_threads()})",
         "",
     ]
@@ -394,7 +419,7 @@ def bench_train(
     if include_sb3 and not mirror:
         notes.append(
             "> **Note:** SB3 rows skipped: SB3's `DQN` + `HerReplayBuffer` mirrors only the replay-only `dqn_her` on "
-            f"a maze with a gymnasium id, and `{experiment}` is {method_label(base)} on {base.env.preset}."
+            f"a maze with a gymnasium id, and `{experiment}` is {method_label(base)} on {world}."
         )
     elif include_sb3 and not have_sb3:
         notes.append(
@@ -416,6 +441,7 @@ def bench_train(
         run_sb3(env_id, warm, min(steps, 40), min(learning_starts, 40), max_steps=min(max_steps, 40))
     bare: list[dict] = []
     bare_own: list[dict] = []
+    own_world = make_maze(base.env) if deep else None  # the experiment's maze or MiniGrid task
     # Interleaved (ours, baseline, ours, baseline, ...), so that drifting load on a shared machine hits every run alike.
     for _ in range(repeats):
         runs[experiment].append(run_ssdrl(experiment, steps, learning_starts, max_steps, overrides=overrides))
@@ -433,7 +459,7 @@ def bench_train(
             runs[name].append(run_ssdrl(name, steps, learning_starts, max_steps))
         if deep:
             bare.append(run_bare_update(agent, steps))
-            bare_own.append(run_bare_update(agent, steps, maze=base.env.preset))
+            bare_own.append(run_bare_update(agent, steps, world=own_world))
 
     def row(label: str, framework: str, results: list[dict]) -> list:
         m = {key: median([r[key] for r in results]) for key in ("steps_per_s", "updates_per_s", "whole_steps_per_s")}
