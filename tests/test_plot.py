@@ -69,10 +69,11 @@ OLD_EVAL_COLUMNS = tuple(c for c in EVAL_COLUMNS if c != agg.EV_WALL)
 
 def _write_run(
     d: Path, maze, method, seed, first_goal, wall, episodes, evals, completed=True, n_episodes=None, accuracy=None,
-    eval_columns=EVAL_COLUMNS, config=None, episode_columns=EPISODE_COLUMNS,
+    eval_columns=EVAL_COLUMNS, config=None, episode_columns=EPISODE_COLUMNS, last_eval=None, slip=None,
 ):  # fmt: skip
     """A run directory; the summary's env steps (the budget) are those of the last evaluation (0 without any).
-    ``config``: the summary's resolved config (None: none, the stored ``method`` labels the run)."""
+    ``config``: the summary's resolved config (None: none, the stored ``method`` labels the run). ``last_eval``:
+    the last evaluation's (success rate, length) in the summary (None: none, as in runs from before them)."""
     d.mkdir(parents=True)
     summary = dict.fromkeys(SUMMARY_KEYS)
     summary.update(
@@ -87,6 +88,9 @@ def _write_run(
             agg.SK_WALL: wall,
             agg.SK_ACCURACY: accuracy,
             agg.SK_ENV_STEPS: evals[-1][agg.EV_ENV_STEPS] if evals else 0,
+            agg.SK_EVAL_RATE: None if last_eval is None else last_eval[0],
+            agg.SK_EVAL_LENGTH: None if last_eval is None else last_eval[1],
+            agg.SK_SLIP: slip,
             "config": config,
         }
     )
@@ -111,10 +115,11 @@ def _build(root: Path) -> dict[str, Path]:
     _write_run(a / "0", MAZE, "ss_her", 0, 1000, 10.0,
                _episodes(np.where(ep <= 100, 20, 10), (ep > 50).astype(int)),
                _evals([(500, 50, 0), (1000, 20, 0), (1500, 22, 1), (2000, 21, 1), (2500, 20, 1)]),
-               accuracy=0.5)  # fmt: skip
+               accuracy=0.5, last_eval=(1.0, 20.0))  # fmt: skip
     _write_run(a / "1", MAZE, "ss_her", 1, 2000, 20.0,
                _episodes(np.where(ep <= 100, 30, 12), (ep > 75).astype(int)),
-               _evals([(500, 100, 0), (1000, 20, 1)]), accuracy=1.0, eval_columns=OLD_EVAL_COLUMNS)  # fmt: skip
+               _evals([(500, 100, 0), (1000, 20, 1)]), accuracy=1.0, eval_columns=OLD_EVAL_COLUMNS,
+               last_eval=(0.5, 25.0))  # fmt: skip
     _write_run(a / "2", MAZE, "ss_her", 2, 6000, 60.0,
                _episodes(np.where(ep[:120] <= 100, 40, 14), np.ones(120, int)),
                _evals([(1000, 22, 1), (3000, 20, 1), (3500, 100, 0)]))  # fmt: skip
@@ -273,6 +278,17 @@ def test_groups_by_maze_and_method(loaded):
     assert [r.n_episodes for r in groups[(MAZE, "ss_her")]] == [150, 150, 120]
 
 
+def test_runs_of_a_maze_with_slips_are_grouped_apart_from_the_deterministic_maze(tmp_path):
+    """A maze whose moves slip is another environment: its runs get their own rows, named with the slip."""
+    for d, slip in (("a", None), ("b", 0.0), ("c", 0.1), ("d", 0.25)):
+        _write_run(tmp_path / d, MAZE, "ss_her", 0, 100, 1.0, _episodes([1], [1]), _evals([(100, 20, 1)]), slip=slip)
+    runs = load_runs([tmp_path], warn=lambda _: None)
+    assert sorted(run.maze for run in runs) == [MAZE, MAZE, f"{MAZE} (slip 0.1)", f"{MAZE} (slip 0.25)"]
+    groups = group_runs(runs)
+    assert list(groups) == [(MAZE, "ss_her"), (f"{MAZE} (slip 0.1)", "ss_her"), (f"{MAZE} (slip 0.25)", "ss_her")]
+    assert [len(group) for group in groups.values()] == [2, 1, 1]
+
+
 def test_results_table_values(loaded):
     rows = {(r.maze, r.method): r for r in results_table(group_runs(loaded[0]), n_resamples=20_000, seed=9)}
     ss = rows[(MAZE, "ss_her")]
@@ -293,8 +309,10 @@ def test_results_table_values(loaded):
     assert ss.cells() == [
         MAZE, "ss_her", "3", "3,000.0", "[1,000.0, 6,000.0]", "2,000.0", "3/3 seeds",
         "0.583", "1.000", "30.0", "12.0", "2,000.0", "3/3 seeds",
-        "2/3 seeds", "1,500.0", "20.0", "0.833", "0.750", "20.0",
+        "2/3 seeds", "1,500.0", "20.0", "0.833", "0.750", "20.0", "0.750", "22.5", "20.0",
     ]  # fmt: skip
+    # The last evaluation: seeds 0 (1.0, 20 steps) and 1 (0.5, 25); seed 2's summary has neither.
+    assert (ss.optimal_length, ss.eval_success_rate, ss.eval_length) == (20.0, 0.75, 22.5)
 
     dqn = rows[(MAZE, "dqn")]
     # One seed reached G: a mean, and no interval.
@@ -304,7 +322,7 @@ def test_results_table_values(loaded):
     assert dqn.cells() == [
         MAZE, "dqn", "3", "9,000.0", "–", "9,000.0", "1/3 seeds",
         "0.003", "–", "100.0", "–", "never", "0/3 seeds",
-        "0/3 seeds", "never", "–", "0.000", "–", "6.0",
+        "0/3 seeds", "never", "–", "0.000", "–", "20.0", "–", "–", "6.0",
     ]  # fmt: skip
 
     other = rows[(OTHER_MAZE, "dqn")]

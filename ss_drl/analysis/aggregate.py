@@ -74,6 +74,9 @@ SK_OPTIMAL = _field(SUMMARY_KEYS, "optimal_length")
 SK_ENV_STEPS = _field(SUMMARY_KEYS, "env_steps")
 SK_WALL = _field(SUMMARY_KEYS, "wall_s")
 SK_ACCURACY = _field(SUMMARY_KEYS, "final_greedy_accuracy")
+SK_EVAL_RATE = _field(SUMMARY_KEYS, "final_eval_success_rate")
+SK_EVAL_LENGTH = _field(SUMMARY_KEYS, "final_eval_length")
+SK_SLIP = _field(SUMMARY_KEYS, "slip")
 
 #: Numeric columns parsed from each CSV (the others, e.g. the ``ss_target`` string, are only checked for presence).
 EPISODE_NUMERIC = (EP_EPISODE, EP_ENV_STEPS, EP_LENGTH, EP_RETURN, EP_SUCCESS)
@@ -115,7 +118,11 @@ class Run:
 
     @property
     def maze(self) -> str:
-        return str(self.summary[SK_MAZE])
+        """The maze's name, with its slip when the moves slip (``easy (slip 0.1)``): a maze with stochastic moves is
+        another environment, and its runs are never pooled with the deterministic maze's."""
+        slip = self.summary.get(SK_SLIP)
+        name = str(self.summary[SK_MAZE])
+        return f"{name} (slip {slip:g})" if _is_number(slip) and slip > 0 else name
 
     @property
     def method(self) -> str:
@@ -276,7 +283,8 @@ def _seed_key(seed) -> tuple:
 
 
 def group_runs(runs: Iterable[Run]) -> dict[tuple[str, str], list[Run]]:
-    """Group runs by ``(maze, method)``: keys sorted, runs in each group sorted by seed (then path)."""
+    """Group runs by ``(maze, method)`` (the maze with its slip, :attr:`Run.maze`): keys sorted, runs in each group
+    sorted by seed (then path)."""
     groups: dict[tuple[str, str], list[Run]] = {}
     for run in runs:
         groups.setdefault((run.maze, run.method), []).append(run)
@@ -458,6 +466,10 @@ class TableRow:
       steps until the greedy evaluation succeeded within 5% of the shortest path; None ("never") when none did.
     * ``greedy_accuracy``: mean over the seeds whose summary has it of the final greedy accuracy (the fraction of
       states whose greedy action is on a shortest path to G); None when none has it (runs from before it existed).
+    * ``optimal_length``: median over seeds of the optimum the rule measures against (the shortest path; under slips
+      the optimal policy's expected steps from S). ``eval_success_rate`` / ``eval_length``: mean over the seeds whose
+      summary has it of the last evaluation's share of episodes that reached G and its (mean) length; None when none
+      has it.
     * ``learned_*``: the learned rule (:func:`run_learned`): ``learned_reached`` of ``learned_known`` seeds learned
       (``learned_known``: the seeds whose summary has ``optimal_length`` and ``env_steps``, normally all);
       ``learned_median`` / ``learned_wall_median``: median over the seeds that learned of the env steps / wall seconds
@@ -487,6 +499,9 @@ class TableRow:
     learned_wall_median: float | None
     last_quarter_mean: float | None
     greedy_accuracy: float | None
+    optimal_length: float | None
+    eval_success_rate: float | None
+    eval_length: float | None
     wall_median: float | None
 
     def cells(self) -> list[str]:
@@ -519,6 +534,9 @@ class TableRow:
             _fmt(self.learned_wall_median, ",.1f"),
             _fmt(self.last_quarter_mean, ".3f"),
             _fmt(self.greedy_accuracy, ".3f"),
+            _fmt(self.optimal_length, ",.1f"),
+            _fmt(self.eval_success_rate, ".3f"),
+            _fmt(self.eval_length, ",.1f"),
             _fmt(self.wall_median, ",.1f"),
         ]
 
@@ -546,6 +564,9 @@ TABLE_HEADER = (
     "learned: wall s (median)",
     f"evals after {float(LAST_QUARTER):.0%} of budget ≤{NEAR_OPTIMAL:g}× (mean fraction)",
     "final greedy accuracy (mean)",
+    "optimum: steps (median)",
+    "last eval: success rate (mean)",
+    "last eval: length (mean)",
     "wall s/run (median)",
 )
 
@@ -567,6 +588,9 @@ def table_row(maze: str, method: str, runs: Sequence[Run], n_resamples: int = 10
     near = [s for s in (near_optimal_env_step(r) for r in runs) if s is not None]
     walls = [float(r.summary[SK_WALL]) for r in runs if _is_number(r.summary.get(SK_WALL))]
     accuracy = [float(r.summary[SK_ACCURACY]) for r in runs if _is_number(r.summary.get(SK_ACCURACY))]
+    optimal = [float(r.summary[SK_OPTIMAL]) for r in runs if _is_number(r.summary.get(SK_OPTIMAL))]
+    rates = [float(r.summary[SK_EVAL_RATE]) for r in runs if _is_number(r.summary.get(SK_EVAL_RATE))]
+    lengths = [float(r.summary[SK_EVAL_LENGTH]) for r in runs if _is_number(r.summary.get(SK_EVAL_LENGTH))]
     rules = [rule for rule in (run_learned(r) for r in runs) if rule is not None]
     learned_steps = [rule.env_step for rule in rules if rule.env_step is not None]
     learned_walls = [rule.wall_s for rule in rules if rule.env_step is not None and rule.wall_s is not None]
@@ -592,6 +616,9 @@ def table_row(maze: str, method: str, runs: Sequence[Run], n_resamples: int = 10
         learned_wall_median=float(np.median(learned_walls)) if learned_walls else None,
         last_quarter_mean=float(np.mean(quarters)) if quarters else None,
         greedy_accuracy=float(np.mean(accuracy)) if accuracy else None,
+        optimal_length=float(np.median(optimal)) if optimal else None,
+        eval_success_rate=float(np.mean(rates)) if rates else None,
+        eval_length=float(np.mean(lengths)) if lengths else None,
         wall_median=float(np.median(walls)) if walls else None,
     )
 
