@@ -77,14 +77,17 @@ def _wait_for(condition, what: str, proc: subprocess.Popen, timeout_s: float) ->
 
 
 @pytest.mark.slow
-def test_sigterm_then_resume_equals_uninterrupted_run(tmp_path):
+@pytest.mark.parametrize("env", [(), ("env.slip=0.2",)], ids=["deterministic", "slip"])
+def test_sigterm_then_resume_equals_uninterrupted_run(tmp_path, env):
+    """SIGTERM writes a checkpoint and stops; the resumed run then equals an uninterrupted one, with stochastic moves
+    too (the env's and the evaluation's generators are in the checkpoint)."""
     full, cut = tmp_path / "full", tmp_path / "cut"
-    subprocess.run(_train_cmd(full), check=True, capture_output=True, cwd=ROOT, timeout=600)
+    subprocess.run(_train_cmd(full, *env), check=True, capture_output=True, cwd=ROOT, timeout=600)
 
     # Output goes to files, not pipes: a child blocked on a full pipe would never reach its checkpoint.
     err_path = tmp_path / "cut.stderr"
     with err_path.open("w") as err_file:
-        proc = subprocess.Popen(_train_cmd(cut), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=err_file, text=True)
+        proc = subprocess.Popen(_train_cmd(cut, *env), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=err_file, text=True)
         # The first checkpoint (at 500 of 4000 env steps) is written atomically, after the CSV rows are flushed:
         # once it exists the run is past its start-up (signal handlers installed) with 3500 steps still to go.
         _wait_for((cut / CHECKPOINT_FILE).exists, "first checkpoint", proc, timeout_s=300)
@@ -107,7 +110,7 @@ def test_sigterm_then_resume_equals_uninterrupted_run(tmp_path):
     assert len(rows_without_wall(cut / EPISODES_FILE)) > 1  # the interrupted run flushed its episodes
 
     resumed = subprocess.run(
-        _train_cmd(cut, "trainer.resume=true"), capture_output=True, text=True, cwd=ROOT, timeout=600
+        _train_cmd(cut, *env, "trainer.resume=true"), capture_output=True, text=True, cwd=ROOT, timeout=600
     )
     assert resumed.returncode == 0, resumed.stderr
     for file in (EPISODES_FILE, EVAL_FILE):
@@ -119,6 +122,7 @@ def test_sigterm_then_resume_equals_uninterrupted_run(tmp_path):
     keys = ("episodes", "env_steps", "first_goal_env_step", "final_eval_length", "completed")
     for key in (*keys, "learned_env_step", "last_quarter_within"):
         assert a[key] == b[key]
+    assert b["slip"] == (0.2 if env else 0) and b["eval_episodes"] == (48 if env else 1)
 
 
 def test_truncate_csv_keeps_the_rows_bytes(tmp_path):
