@@ -266,7 +266,7 @@ def test_a_minigrid_run_resumes_as_if_uninterrupted(tmp_path, capsys):
     full = assert_resume_equals_uninterrupted(run, tmp_path)
     summary = json.loads((full / SUMMARY_FILE).read_text())
     assert summary["maze"] == DOORKEY and summary["optimal_length"] == 11
-    assert summary["bounds_in_force"] == ["hindsight_bound", "distance_floor", "model_targets"]
+    assert summary["bounds_in_force"] == ["hindsight_bound", "distance_floor", "model_targets", "bound_all_actions"]
     assert (full / "smart_start.png").is_file()  # visit counts per cell
     # evaluate.py draws the MiniGrid frame with the greedy path.
     assert evaluate_main([str(full), "--out", str(tmp_path / "greedy.png")]) == 0

@@ -481,6 +481,18 @@ class TDTarget:
         return [b.key for b in self.bounds] + ([self.model_targets.key] if self.model_targets is not None else [])
 
     @property
+    def in_force(self) -> list[str]:
+        """:attr:`names`, then the switches that shape those bounds: ``optimistic_floor`` (the floor takes the
+        ceiling's steps where it knows no route: optimism) and ``bound_all_actions`` (the floor and ceiling hold every
+        action of s_t). What ``summary.json`` lists as ``bounds_in_force``."""
+        shaping = []
+        if any(getattr(b, "optimistic", None) is not None for b in self.bounds):
+            shaping.append("optimistic_floor")
+        if self.bounds_all_actions:
+            shaping.append("bound_all_actions")
+        return self.names + shaping
+
+    @property
     def holds_other_actions(self) -> bool:
         return self.model_targets is not None or self.bounds_all_actions
 

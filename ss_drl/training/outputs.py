@@ -95,7 +95,7 @@ SUMMARY_KEYS = (
     "env_steps_per_s",
     "updates_per_s",
     "smart_start_decisions",  # guided phases started (0 without Smart Start)
-    "bounds_in_force",  # the TD target's bounds that ran (ss_drl/agents/targets.py; [] for the tabular agent)
+    "bounds_in_force",  # the TD target's bounds that ran, then optimistic_floor / bound_all_actions if on ([]: none)
     "config",  # the resolved Hydra config
 )
 

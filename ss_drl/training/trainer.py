@@ -467,7 +467,7 @@ class Trainer:
             "env_steps_per_s": round(self.collector.env_steps / max(wall, 1e-9), 1),
             "updates_per_s": round(self.agent.updates / max(wall, 1e-9), 1),
             "smart_start_decisions": 0 if self.smart_start is None else self.smart_start.decisions,
-            "bounds_in_force": list(getattr(getattr(self.agent, "td_target", None), "names", [])),
+            "bounds_in_force": list(getattr(getattr(self.agent, "td_target", None), "in_force", [])),
             "config": self.resolved,
         }
 
