@@ -111,6 +111,7 @@ def test_layouts_differ_by_seed_and_a_state_cap_refuses_in_one_line():
         ("env.id=CartPole-v1", "env.id", "not a MiniGrid task"),
         ("env.max_states=20", "env.max_states", "more than 20 reachable states"),
         ("env.slip=0.1", "env.slip", "MiniGrid"),
+        ("env.slip=abc", "env.slip", "expected a number"),  # was a traceback: read as a float before it was checked
         ("env.layout_seed=-1", "env.layout_seed", "out of range"),
     ],
 )

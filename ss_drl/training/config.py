@@ -110,13 +110,13 @@ def validate_config(cfg: DictConfig) -> None:
     """Check every value a run uses; raise :class:`ConfigError` on the first bad one."""
     _number(cfg, "seed", low=0, integer=True)
     # env
+    _number(cfg, "env.slip", low=0, high=1)  # before the MiniGrid check, which reads it
     if cfg.env.get("id") not in (None, ""):
         _minigrid_env(cfg)
     else:
         _maze_env(cfg)
     _number(cfg, "env.max_steps", low=1, integer=True)
     _number(cfg, "env.num_envs", low=1, integer=True)
-    _number(cfg, "env.slip", low=0, high=1)
     _trainer_and_learner(cfg)
 
 
@@ -129,7 +129,7 @@ def _minigrid_env(cfg: DictConfig) -> None:
         raise ConfigError(f"env.id: expected a MiniGrid id such as MiniGrid-FourRooms-v0, got {cfg.env.id!r}")
     seed = _number(cfg, "env.layout_seed", low=0, integer=True)
     cap = _number(cfg, "env.max_states", low=1, integer=True)
-    if float(_get(cfg, "env.slip") or 0) > 0:
+    if cfg.env.slip > 0:
         raise ConfigError(f"env.slip: {cfg.env.slip!r} is out of range for a MiniGrid task (allowed: 0)")
     try:
         MiniGridTask(cfg.env.id, int(seed), int(cap))
