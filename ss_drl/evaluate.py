@@ -52,33 +52,61 @@ def load_agent(run_dir: Path):
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("run_dir", type=Path, help="a run directory written by scripts/train.py")
-    parser.add_argument("--episodes", type=int, default=1, help="greedy episodes (deterministic: 1 is enough)")
+    parser.add_argument(
+        "--episodes", type=int, default=None,
+        help="greedy episodes from S (default: the run's trainer.eval_episodes, derived from env.slip: 1 without "
+        "slips, where every episode is the same walk)",
+    )  # fmt: skip
+    parser.add_argument("--seed", type=int, default=0, help="seed of the slips' generator (runs with env.slip > 0)")
     parser.add_argument("--out", type=Path, default=None, help="PNG path (default: <run dir>/greedy_policy.png)")
     args = parser.parse_args(argv)
     if not (args.run_dir / CHECKPOINT_FILE).is_file():
         print(f"evaluate.py: error: no {CHECKPOINT_FILE} in {args.run_dir}", file=sys.stderr)
         return 2
+    if args.episodes is not None and args.episodes < 1:
+        print(f"evaluate.py: error: --episodes: {args.episodes} is out of range (allowed: >= 1)", file=sys.stderr)
+        return 2
     from ss_drl.training.checkpoint import UnreadableCheckpoint
     from ss_drl.training.figures import plot_minigrid_policy, plot_policy
-    from ss_drl.training.greedy import greedy_rollout
+    from ss_drl.training.greedy import eval_episodes, evaluate_policy, greedy_accuracy, greedy_policy
+    from ss_drl.training.learned import BOUND
 
     try:
         agent, maze, cfg = load_agent(args.run_dir)
     except (OldCheckpoint, UnreadableCheckpoint) as exc:
         print(f"evaluate.py: error: {exc}", file=sys.stderr)
         return 2
-    optimal = maze.shortest_path_length
-    rollout = None
-    for episode in range(1, args.episodes + 1):
-        rollout = greedy_rollout(agent, maze, cfg.env.max_steps)
-        print(f"episode {episode}: length {rollout.length}, success {int(rollout.success)} (optimal {optimal})")
-    print(f"greedy accuracy: {rollout.accuracy:.3f} (fraction of states whose greedy action is on a shortest path)")
+    # As the trainer evaluates: the greedy policy rolled out in the env's dynamics, slips included, against the
+    # shortest path or, under slips, the optimal policy's expected steps from S.
+    slip = float(cfg.env.get("slip", 0) or 0)
+    episodes = args.episodes or cfg.trainer.get("eval_episodes") or eval_episodes(slip)
+    if slip > 0:
+        optimal = round(float(maze.expected_steps(slip)[0][maze.start_state]), 3)
+    else:
+        optimal = maze.shortest_path_length
+    policy = greedy_policy(agent, maze)
+    generator = torch.Generator().manual_seed(args.seed)
+    ev = evaluate_policy(policy, maze, cfg.env.max_steps, int(episodes), slip, generator)
+    if len(ev.lengths) == 1:
+        length = ev.lengths[0]
+        print(f"episode 1: length {length}, success {int(ev.success)} (optimal {optimal})")
+    else:
+        length = round(ev.mean_length, 3)
+        within = ev.success and length <= float(BOUND) * optimal
+        print(
+            f"{len(ev.lengths)} greedy episodes from S at slip {slip:g} (seed {args.seed}): mean length {length}, "
+            f"success rate {ev.success_rate:.3f} (optimal {optimal}); within {float(BOUND):g}x the optimum with "
+            f"every episode at G: {'yes' if within else 'no'}"
+        )
+    accuracy = greedy_accuracy(policy, maze)
+    print(f"greedy accuracy: {accuracy:.3f} (fraction of states whose greedy action is on a shortest path)")
     out = args.out or args.run_dir / "greedy_policy.png"
-    title = f"{cfg.experiment} seed {cfg.seed}: greedy length {rollout.length} (optimal {optimal})"
+    what = "greedy length" if len(ev.lengths) == 1 else "mean greedy length"
+    title = f"{cfg.experiment} seed {cfg.seed}: {what} {length} (optimal {optimal})"
     if cfg.env.get("id"):  # a MiniGrid task: its own frame with the greedy path
-        plot_minigrid_policy(maze, rollout.path, out, title)
+        plot_minigrid_policy(maze, ev.path, out, title)
     else:
         q = agent.greedy_q_values(torch.arange(maze.n_cells), torch.tensor([maze.goal_cell]))[0]
-        plot_policy(maze, q.amax(dim=-1).numpy(), rollout.path, out, title)
+        plot_policy(maze, q.amax(dim=-1).numpy(), ev.path, out, title)
     print(f"wrote {out}")
     return 0

@@ -301,6 +301,23 @@ def test_script_without_checkpoint_is_a_clear_error(tmp_path):
 
 
 @pytest.mark.slow
+def test_a_run_with_slips_is_diagnosed_without_them_and_says_so(tmp_path):
+    """diagnose.py measures the greedy policy on the deterministic maze; on a run whose moves slip it says so."""
+    from ss_drl.training.trainer import Trainer
+
+    run = tmp_path / "run"
+    Trainer(
+        compose_cfg("+experiment=easy_small_tabular_ss", "env.slip=0.2", "trainer.total_env_steps=300"), run
+    ).train()
+    result = run_script(run)
+    assert result.returncode == 0, result.stderr
+    assert json.loads((run / DIAGNOSIS_FILE).read_text())["slip"] == 0.2
+    assert "The run's moves slip (env.slip 0.2); what follows measures its greedy policy on the maze without slips" in (
+        result.stdout
+    )
+
+
+@pytest.mark.slow
 def test_script_on_a_tabular_smart_start_run(tmp_path):
     from ss_drl.training.trainer import Trainer
 

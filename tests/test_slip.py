@@ -18,6 +18,7 @@ from tensordict import TensorDict
 from ss_drl.envs.batched import BatchedMazeEnv
 from ss_drl.envs.gridworld import MazeEnv
 from ss_drl.envs.maze import action_probabilities, parse_maze
+from ss_drl.evaluate import main as evaluate_main
 from ss_drl.training.outputs import EVAL_FILE, SUMMARY_FILE
 from ss_drl.training.trainer import dqn_settings
 
@@ -141,7 +142,7 @@ def test_the_frontier_explorer_refuses_slips():
 
 
 @pytest.mark.slow
-def test_a_run_with_slips_resumes_as_if_uninterrupted_and_lists_its_bounds(tmp_path):
+def test_a_run_with_slips_resumes_as_if_uninterrupted_and_lists_its_bounds(tmp_path, capsys):
     run = [
         "+experiment=easy_small_ss_her_bounded",
         *(o for o in TINY if not o.startswith("trainer.total_env_steps=")),
@@ -160,6 +161,12 @@ def test_a_run_with_slips_resumes_as_if_uninterrupted_and_lists_its_bounds(tmp_p
         assert abs(float(row["eval_success_rate"]) * 48 - round(float(row["eval_success_rate"]) * 48)) < 0.01
     for row in evals:  # success is "every episode reached G"
         assert (row["eval_success"] == "1") == (float(row["eval_success_rate"]) == 1.0)
+    # evaluate.py evaluates as the trainer does: 48 episodes in the env's dynamics, against the same optimum.
+    assert evaluate_main([str(full), "--out", str(tmp_path / "greedy.png")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("48 greedy episodes from S at slip 0.2 (seed 0): mean length ")
+    assert f"(optimal {summary['optimal_length']})" in out[0]
+    assert (tmp_path / "greedy.png").stat().st_size > 0
 
 
 # --- the optimum and "learned" under slips --------------------------------------------------------------------------

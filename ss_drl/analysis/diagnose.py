@@ -422,6 +422,7 @@ def diagnose_run(run_dir: str | Path, width: int = 10) -> dict:
         "maze": maze.name,
         **({} if state_cells(maze) is None else {"world": "minigrid", "states": maze.n_states}),
         "optimal_length": maze.shortest_path_length,
+        "slip": float(cfg.env.get("slip", 0) or 0),
         "bucket_width": int(width),
         **diagnose_agent(agent, maze, gamma, int(cfg.env.max_steps), width),
         "training": training_data(run_dir, total),
@@ -465,6 +466,15 @@ def format_markdown(d: dict) -> str:
         f"Run: `{d['run_dir']}`. {world}shortest path {d['optimal_length']}); optimal values "
         f"gamma^(d-1) with gamma {d['value_gamma']:g} (agent's gamma {d['agent_gamma']:g}).",
         "",
+    ]
+    if d.get("slip"):
+        lines += [
+            f"The run's moves slip (env.slip {d['slip']:g}); what follows measures its greedy policy on the maze "
+            "without slips (the deterministic walk from S, shortest-path distances and their values). "
+            "`scripts/evaluate.py` rolls the policy out with the slips, as the trainer's evaluations do.",
+            "",
+        ]
+    lines += [
         f"### Greedy accuracy and value error by distance to G (buckets of {d['bucket_width']})",
         "",
     ]
