@@ -226,22 +226,28 @@ def test_exploration_hands_over_to_the_policy_when_nothing_is_left_to_try():
 
 @pytest.mark.parametrize("after_goal", [True, False])
 def test_options_after_the_goal_was_reached(after_goal):
+    """Once G has been reached, ``explore_after_goal: false`` turns both options off: S_ss by the paper's UCB on
+    counts again (not on the frontier), and no exploration phase on arrival."""
     maze = _maze()
     model = _hand_model(maze)
     table = maze.transition_table()
-    # The corridor on to 5 is known (2 -> 3 and every move of 3 and 4), and G was reached once, from 5.
-    for cell, action in [(2, R)] + [(c, a) for c in (3, 4) for a in range(4)] + [(5, D)]:
-        nxt = int(table[cell, action])
-        model.update(torch.tensor([cell]), torch.tensor([action]), torch.tensor([nxt]), torch.tensor([nxt == 11.0]))
+    # The corridor on to 5 is known (2 -> 3, every move of 3 twice and of 4 once, 4's up twice more, 5's up ten times)
+    # and G was reached once, from 5. 5's right and left are still untried.
+    moves = [(2, R, 1)] + [(3, a, 2) for a in range(4)] + [(4, a, 1) for a in range(4)] + [(4, U, 2), (5, U, 10)]
+    for cell, action, times in [*moves, (5, D, 1)]:
+        s, a = torch.full((times,), cell), torch.full((times,), action)
+        nxt = torch.from_numpy(table[s.numpy(), a.numpy()])
+        model.update(s, a, nxt, (nxt == maze.goal_cell).float())
     ss = _controller(maze, model, after_goal=after_goal)
     _start(ss, maze)
-    # Visits: 5 was departed once, the fewest: the paper's UCB picks it, and it is the one frontier state (three
-    # untried moves) too. Whether the exploration phase follows arrival depends on the option.
-    assert ss.target.tolist() == [5]
+    # Visits: S 8, 0 4, 1 12, 2 7, 3 8, 4 6, 5 11. The paper's UCB (w_q 0) picks the least visited state, 0, whose
+    # moves are all tried; the one state with an untried move is 5, the frontier's pick.
+    expected = 5 if after_goal else 0
+    assert ss.target.tolist() == [expected]
     cell = maze.start_cell
     while ss.active.any():
         _, cell = _step(ss, maze, cell)
-    assert cell == 5 and ss.exploring.tolist() == [after_goal]
+    assert cell == expected and ss.exploring.tolist() == [after_goal]
 
 
 def test_unknown_option_is_refused():
@@ -277,17 +283,20 @@ def test_episodes_count_each_new_move_once_and_the_exploration_phase(tmp_path):
 
 @pytest.mark.parametrize("from_start", [False, True])
 def test_the_first_episode_explores_from_its_first_step_only_with_explore_from_start(from_start):
-    """A copy's first episode has no guided phase. With ``explore_from_start`` it is an exploration phase from S: on
-    an empty count model the first move is one of S's untried moves, and the phase goes on; without, the policy."""
+    """A copy's first episode has no guided phase. With ``explore_from_start`` it is an exploration phase from S; on
+    the hand-built count model S's moves are all tried and the one untried move is 2's right, so the phase walks the
+    one shortest route there (up, right, right) and tries it. Without the option the policy acts from the first
+    step."""
     maze = _maze()
     ss = SmartStart(
-        maze, CountModel(maze.n_cells), 1, eta=1.0, c_ss=2.0, w_q=0.0, theta=0, planner=Planner(maze.width),
+        maze, _hand_model(maze), 1, eta=1.0, c_ss=2.0, w_q=0.0, theta=0, planner=Planner(maze.width),
         generator=torch.Generator().manual_seed(0), explore="frontier", explore_from_start=from_start,
     )  # fmt: skip
     one = torch.ones(1, dtype=torch.bool)
     ss.start_episodes(one, torch.tensor([maze.start_cell]), torch.tensor([maze.goal_cell]), None)
     assert not ss.used.any() and ss.exploring.tolist() == [from_start]
-    action, cell = _step(ss, maze, maze.start_cell)
-    assert (action != SENTINEL) == from_start
-    if from_start:
-        assert ss.frontier.tried[maze.start_cell, action] and ss.exploring.tolist() == [True]
+    if not from_start:
+        assert _step(ss, maze, maze.start_cell) == (SENTINEL, maze.start_cell)
+        return
+    trace = [_step(ss, maze, cell) for cell in (maze.start_cell, 0, 1, 2)]
+    assert trace == [(U, 0), (R, 1), (R, 2), (R, 3)] and ss.exploring.tolist() == [True]
