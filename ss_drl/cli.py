@@ -234,6 +234,52 @@ def check_group_choices(argv: list[str], conf: Path) -> None:
             raise ConfigError(f"{group}: unknown value {choice!r} (no {conf / group / choice}.yaml); {hint}")
 
 
+_ABSENT = object()
+
+
+def check_override_keys(argv: list[str], conf: Path) -> None:
+    """Refuse an override of a key the config does not have, e.g. ``agent.lrr=0.1`` (:class:`~ss_drl.training.config.
+    ConfigError`, one line naming the key, the nearest keys beside it, and ``+key=...`` to add one), before Hydra
+    composes the config: Hydra refuses it too, in seven lines and with exit code 1. The config is composed with the
+    command line's group choices (the first of a sweep list); ``+``/``++``/``~`` overrides and Hydra's own keys are
+    left to Hydra, and so is a command line with sweep functions, interpolations or another search path."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from ss_drl.training.config import ConfigError
+
+    if any(arg.split("=", 1)[0] in _SEARCH_OPTIONS for arg in argv):
+        return
+    groups, keys = [], []
+    for arg in argv:
+        if arg.startswith(("-", "~")) or "=" not in arg:
+            continue
+        key, value = arg.split("=", 1)
+        group = key.lstrip("+").split("@", 1)[0]
+        if group.startswith("hydra"):
+            continue
+        if any(c in value for c in "()[]{}$*") and (conf / group).is_dir():
+            return  # a sweep function or an interpolation choosing a group: Hydra's to expand
+        if (conf / group).is_dir():
+            groups.append(f"{key}={value.split(',', 1)[0]}")
+        elif not key.startswith("+"):
+            keys.append(key)
+    if not keys:
+        return
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose("config", overrides=groups)
+    for key in keys:
+        if OmegaConf.select(cfg, key, default=_ABSENT, throw_on_resolution_failure=False) is not _ABSENT:
+            continue
+        parent, _, leaf = key.rpartition(".")
+        node = OmegaConf.select(cfg, parent, default=None) if parent else cfg
+        if not isinstance(node, DictConfig):
+            raise ConfigError(f"{key}: no such key in the config ({parent or key} is not a section of it)")
+        near = difflib.get_close_matches(leaf, [str(k) for k in node.keys()], n=3, cutoff=0.6)
+        hint = f"did you mean {' or '.join(f'{parent}.{n}' if parent else n for n in near)}? " if near else ""
+        raise ConfigError(f"{key}: no such key in the config; {hint}to add a new key, use +{key}=...")
+
+
 def train_main() -> None:
     """``ss-drl-train +experiment=NAME [key=value ...]`` (also ``-m`` sweeps): what scripts/train.py runs."""
     from ss_drl.training.config import ConfigError
@@ -243,4 +289,5 @@ def train_main() -> None:
     except FileNotFoundError as exc:
         sys.exit(str(exc))
     _refuse_on(lambda: check_group_choices(sys.argv[1:], conf), ConfigError)
+    _refuse_on(lambda: check_override_keys(sys.argv[1:], conf), ConfigError)
     hydra.main(config_path=str(conf), config_name="config", version_base="1.3")(_train)()

@@ -486,6 +486,39 @@ def test_batch_larger_than_buffer():
     validate_config(compose_cfg(overrides=["agent.batch_size=32", "agent.buffer_size=32"]))
 
 
+# --- (c2) an override of a key the config does not have: one line before Hydra composes anything ---
+def test_an_override_of_a_key_the_config_lacks_is_refused_naming_the_nearest():
+    """Hydra refuses ``agent.lrr=0.1`` too, in seven lines with exit code 1; this is the one line."""
+    from ss_drl.cli import check_override_keys
+
+    def refused(*argv: str) -> str:
+        with pytest.raises(ConfigError) as info:
+            check_override_keys(list(argv), CONF)
+        message = str(info.value)
+        assert "\n" not in message, message
+        return message
+
+    assert refused("+experiment=easy_ss_her", "agent.lrr=0.1") == (
+        "agent.lrr: no such key in the config; did you mean agent.lr? to add a new key, use +agent.lrr=..."
+    )
+    assert refused("agentt.lr=0.1") == "agentt.lr: no such key in the config (agentt is not a section of it)"
+    assert refused("+experiment=easy_ss_her", "trainer.eval_interva=5").startswith(
+        "trainer.eval_interva: no such key in the config; did you mean trainer.eval_interval or "
+    )
+    # Checked against the config of the groups chosen: the tabular agent has alpha, the DQN none.
+    assert refused("+experiment=easy_ss_her", "agent.alpha=0.5").startswith("agent.alpha: no such key in the config")
+    for ok in (
+        ["+experiment=easy_ss_her", "agent=tabular", "agent.alpha=0.5", "seed=range(3)"],
+        ["+experiment=easy_ss_her", "logger=wandb", "logger.mode=online", "agent.lr=0.01"],
+        ["-m", "+experiment=easy_ss,easy_ss_her", "agent.hidden=[64,64]", "env.layout=x.txt"],
+        ["+experiment=easy_ss_her", "+agent.new_key=1", "++trainer.other=2", "~trainer.resume"],  # Hydra's to check
+        ["hydra.run.dir=/tmp/x=y", "hydra.launcher.n_jobs=2"],  # Hydra's own keys
+        ["+experiment@x=glob(*)", "agent.lrr=1"],  # a group chosen by a sweep function: Hydra expands it
+        ["--config-dir", "/elsewhere", "agent.lrr=1"],  # another search path: Hydra's to check
+    ):
+        check_override_keys(ok, CONF)
+
+
 # --- (d) a config group choice that names no file: one line before Hydra composes anything ---
 def test_an_unknown_group_choice_is_refused_naming_the_group():
     from ss_drl.cli import check_group_choices
