@@ -176,10 +176,11 @@ def _train(cfg: DictConfig):
         print(f"ss-drl: job failed, see {run_dir / FAILED_FILE}", file=sys.stderr)
         return None
     first = summary["first_goal_env_step"]
+    goal = f"first goal at {first}" if first is not None else "G never reached"
     print(
         f"{summary['experiment']} seed {summary['seed']}: {summary['episodes']} episodes, {summary['env_steps']} env "
-        f"steps in {summary['wall_s']:.1f}s ({summary['env_steps_per_s']:.0f} steps/s); first goal at "
-        f"{first if first is not None else 'never'}; greedy length {summary['final_eval_length']} "
+        f"steps in {summary['wall_s']:.1f}s ({summary['env_steps_per_s']:.0f} steps/s); "
+        f"{goal}; greedy length {summary['final_eval_length']} "
         f"(optimal {summary['optimal_length']}); outputs in {run_dir}"
     )
     return summary["final_eval_length"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,11 @@ def _base(ax, maze: Maze, values: np.ndarray, label: str, cmap: str = "viridis",
     ax.set_xticks([])
     ax.set_yticks([])
     ax.figure.colorbar(image, ax=ax, fraction=0.046, pad=0.04, label=label)
+
+
+def _title(ax, title: str, width: int = 60) -> None:
+    """A title wrapped to ``width`` characters, so that a long one fits a narrow maze's axes."""
+    ax.set_title("\n".join(textwrap.wrap(title, width)), fontsize=9)
 
 
 def _save(fig: Figure, path: Path) -> Path:
@@ -64,7 +70,7 @@ def plot_minigrid_policy(task, path_states: list[int], out: Path, title: str, ti
             label="end")  # fmt: skip
     ax.set_xticks([])
     ax.set_yticks([])
-    ax.set_title(title)
+    _title(ax, title)
     ax.legend(loc="upper right", fontsize=7)
     return _save(fig, out)
 
@@ -76,6 +82,6 @@ def plot_policy(maze: Maze, max_q: np.ndarray, path_cells: list[int], out: Path,
     _base(ax, maze, max_q.reshape(maze.height, maze.width), "max_a Q(s||G, a)")
     rows, cols = np.divmod(np.asarray(path_cells), maze.width)
     ax.plot(cols, rows, "-", color="white", linewidth=2)
-    ax.set_title(title)
+    _title(ax, title)
     ax.legend(loc="upper right", fontsize=7)
     return _save(fig, out)
