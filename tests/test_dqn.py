@@ -25,7 +25,7 @@ from torchrl.objectives import DQNLoss, SoftUpdate
 from ss_drl.agents.dqn import DQNAgent, PolyakUpdate, value_range
 from ss_drl.agents.network import CellEncoder
 from ss_drl.agents.settings import DQNSettings
-from ss_drl.agents.targets import DistanceCeiling, DistanceFloor, HindsightBound, KStepMax, make_td_target
+from ss_drl.agents.targets import DistanceCeiling, DistanceFloor, HindsightBound, NStepMax, make_td_target
 from ss_drl.envs.maze import load_maze
 from ss_drl.her import HindsightReplayBuffer
 from ss_drl.smart_start import CountModel
@@ -560,7 +560,7 @@ def test_k_step_max_bound_by_hand():
     agent = make_agent(*SHORTEST_PATH, "agent.n_step=3", "agent.n_step_max=true")
     batch = n_step_max_batch()
     values = cell_table(agent.maze.n_cells, V)[batch["window_observation"][:, :-1]]  # V after k = 1, 2 steps
-    lower = bound(agent, KStepMax).lower(batch, values)
+    lower = bound(agent, NStepMax).lower(batch, values)
     torch.testing.assert_close(lower, torch.tensor([[-6.0], [-6.0], [-INF], [-2.0]]))
 
 

@@ -18,8 +18,8 @@ from ss_drl.agents.targets import (
     DistanceCeiling,
     DistanceFloor,
     HindsightBound,
-    KStepMax,
     ModelTargets,
+    NStepMax,
     Scale,
     TDTarget,
     resolve_bounds,
@@ -273,7 +273,7 @@ def test_optimistic_floor_substitutes_the_ceiling_where_no_route_is_known():
 def test_k_step_max_takes_the_largest_shorter_target_inside_the_window():
     """Windows of 3 steps (shortest-path form: k steps return -k before the bootstrap), bootstrapped values V after
     steps 1 and 2: m = 3 gives max(-1 + V1, -2 + V2); m = 2 only -1 + V1; m = 1 nothing."""
-    bound = KStepMax(PATH, n_step=3)
+    bound = NStepMax(PATH, n_step=3)
     batch = TensorDict(
         {"window_observation": torch.tensor([[1, 2, 3]] * 3), "n_steps": torch.tensor([[3], [2], [1]])},
         batch_size=[3],
@@ -294,7 +294,7 @@ def every_bound_binds(fused: bool = True) -> tuple[TDTarget, TensorDict]:
     counts = corridor_counts()
     g = CORRIDOR.goal_cell
     ceiling = DistanceCeiling(counts, CORRIDOR.height, CORRIDOR.width, g, PATH, all_actions=True)
-    bounds = [HindsightBound(PATH), KStepMax(PATH, 3), DistanceFloor(counts, g, PATH, all_actions=True), ceiling]
+    bounds = [HindsightBound(PATH), NStepMax(PATH, 3), DistanceFloor(counts, g, PATH, all_actions=True), ceiling]
     target = TDTarget(PATH, bounds, ModelTargets(counts, PATH), value_range=(-20.0, 0.0), fused=fused)
     goals = torch.tensor([6, 7, g, g, 5, 1])
     m = torch.tensor([[1], [3], [1], [1], [1], [1]])

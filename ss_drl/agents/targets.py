@@ -170,7 +170,7 @@ class HindsightBound(Bound):
         return path_value(sample.get("goal_steps"), self.scale.gamma, self.scale.step_cost)
 
 
-class KStepMax(Bound):
+class NStepMax(Bound):
     """The k-step maximum (``agent.n_step_max``): each k-step target of the sample's window, k = 1..m - 1 (no goal
     entered and no episode end before step m), is itself the return of a path the agent walked, bootstrapped, so
     in a deterministic maze it bounds the target from below as far as the target network's values are not too high
@@ -574,7 +574,7 @@ def assumptions(settings) -> dict[str, frozenset[str]]:
     if settings.hindsight_bound:
         out["hindsight_bound"] = HindsightBound.assumes
     if settings.n_step_max:
-        out["n_step_max"] = KStepMax.assumes
+        out["n_step_max"] = NStepMax.assumes
     if settings.distance_floor:
         out["distance_floor"] = DistanceFloor.assumes
     if settings.distance_ceiling:
@@ -624,7 +624,7 @@ def make_td_target(
     if settings.hindsight_bound:
         bounds.append(HindsightBound(scale))
     if settings.n_step_max:
-        bounds.append(KStepMax(scale, settings.n_step))
+        bounds.append(NStepMax(scale, settings.n_step))
     ceiling = None
     if settings.distance_ceiling:
         ceiling = DistanceCeiling(counts, maze.height, maze.width, maze.goal_cell, scale, settings.bound_all_actions)
