@@ -1,9 +1,11 @@
 """The one breadth-first search of the project, on adjacency lists of integer nodes.
 
-Three callers: the true maze's distances (:meth:`ss_drl.envs.maze.Maze.distances_from`, the optimal path length),
-the planner's distances to the smart start state on the count model's observed transitions
-(:meth:`ss_drl.smart_start.planner.Planner._deterministic_sweeps`), and the distance bounds of the TD target
-(:mod:`ss_drl.agents.targets`).
+Its callers: the true maze's distances (:meth:`ss_drl.envs.maze.Maze.distances_from`, the optimal path length) and a
+MiniGrid task's (:mod:`ss_drl.envs.minigrid`), the planner's distances to the smart start state on the count model's
+observed transitions (:meth:`ss_drl.smart_start.planner.Planner._deterministic_sweeps`), the distance bounds of the TD
+target (:mod:`ss_drl.agents.targets`) and the frontier explorer's routes (:mod:`ss_drl.agents.frontier`). The MiniGrid
+adapter's enumeration of a task's reachable states is a search of its own: it discovers the graph by stepping
+MiniGrid, so it has no adjacency lists to hand over.
 """
 
 from __future__ import annotations

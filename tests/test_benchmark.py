@@ -305,6 +305,7 @@ def _train_rows(text: str) -> tuple[dict[str, dict[str, str]], list[dict[str, st
     return {row["run"]: row for row in results}, parity
 
 
+@pytest.mark.slow  # training runs (scripts/train.py subprocesses)
 def test_train_section_quick(train_quick):
     sizes = cli.QUICK_SIZES["train"]
     steps, learning_starts, max_steps = sizes["steps"], sizes["learning_starts"], sizes["max_steps"]
@@ -350,6 +351,7 @@ def test_train_section_quick(train_quick):
         assert not any(row["framework"].startswith("stable-baselines3") for row in rows.values())
 
 
+@pytest.mark.slow
 @needs_sb3
 def test_train_section_quick_against_sb3(train_quick):
     steps = cli.QUICK_SIZES["train"]["steps"]
@@ -370,6 +372,7 @@ def test_train_section_quick_against_sb3(train_quick):
     assert settings["HER"]["SB3"] == "future, n_sampled_goal=4"
 
 
+@pytest.mark.slow
 def test_train_section_without_sb3_notes_it(monkeypatch):
     monkeypatch.setattr(train, "sb3_available", lambda: False)
     threads = torch.get_num_threads()
@@ -503,6 +506,7 @@ def baseline_checkout(tmp_path_factory) -> Path:
     return clone
 
 
+@pytest.mark.slow
 def test_train_section_quick_against_a_baseline_checkout(baseline_checkout):
     argv = ["--section", "train", "--quick", "--repeats", "1", "--experiment", "easy_small_dqn_her"]
     text = run_main([*argv, "--baseline-checkout", str(baseline_checkout)])

@@ -218,6 +218,7 @@ def rows_without_wall(path):
     return [r[:i] + r[i + 1 :] for r in rows]
 
 
+@pytest.mark.slow  # five training runs
 def test_resume_equals_an_uninterrupted_run(tmp_path):
     """Stopped at 100 (while exploring), 250 and 600 env steps and resumed each time, a run equals the uninterrupted
     one: its episodes, evaluations, first goal and memory (the planned route and the generator travel in the

@@ -166,6 +166,7 @@ def _eval_rows(run_dir) -> list[EvalRecord]:
     ]
 
 
+@pytest.mark.slow  # a training run, resumed
 def test_summary_applies_the_rule_to_eval_csv_also_after_a_resume(tmp_path):
     first = Trainer(compose_cfg(*RUN, "trainer.total_env_steps=2000"), tmp_path).train()
     rows_first = _eval_rows(tmp_path)
@@ -193,6 +194,7 @@ def test_summary_applies_the_rule_to_eval_csv_also_after_a_resume(tmp_path):
     assert got == (expected.env_step, expected.wall_s, expected.last_quarter_within)
 
 
+@pytest.mark.slow  # a training run
 def test_resume_refuses_outputs_from_before_the_evaluation_list(tmp_path):
     Trainer(compose_cfg(*RUN, "trainer.total_env_steps=200"), tmp_path).train()
     state = torch.load(tmp_path / CHECKPOINT_FILE, weights_only=False)

@@ -217,7 +217,9 @@ def fully_explored_model(maze: Maze) -> CountModel:
     s = np.repeat(free, n_actions)
     a = np.tile(np.arange(n_actions), free.size)
     s2 = table[s, a]
-    r = (s2 == maze.goal_cell).astype(np.float32)
+    from ss_drl.envs.maze import goal_reward
+
+    r = goal_reward(torch.from_numpy(s2), maze.goal_cell).to(torch.float32)
     model = CountModel(maze.n_cells, n_actions)
-    model.update(torch.from_numpy(s), torch.from_numpy(a), torch.from_numpy(s2), torch.from_numpy(r))
+    model.update(torch.from_numpy(s), torch.from_numpy(a), torch.from_numpy(s2), r)
     return model
