@@ -542,3 +542,32 @@ def test_an_unknown_group_choice_is_refused_naming_the_group():
         ["--config-dir", "/elsewhere", "+experiment=only_there"],  # another search path: Hydra's to check
     ):
         check_group_choices(ok, CONF)
+
+
+# --- the README's configuration reference -----------------------------------------------------------------------------
+def _leaf_keys(node, prefix: str = "") -> set[str]:
+    keys = set()
+    for key in node:
+        value = node._get_node(key)
+        dotted = f"{prefix}{key}"
+        keys |= _leaf_keys(value, f"{dotted}.") if OmegaConf.is_dict(value) else {dotted}
+    return keys
+
+
+def test_the_readme_configuration_reference_names_every_key():
+    """Every key of every learner's, logger's and world's composed config has its line in the README's Configuration
+    table (a key added to a YAML without a line there fails here), and the table names no key that does not exist."""
+    keys = set()
+    for overrides in (
+        ["+experiment=easy_ss_her"], ["+experiment=easy_ss_her_bounded"], ["+experiment=easy_tabular_ss"],
+        ["+experiment=easy_frontier"], ["+experiment=minigrid_ss_her"], ["+experiment=easy_ss_her", "logger=wandb"],
+    ):  # fmt: skip
+        keys |= {k for k in _leaf_keys(compose(*overrides)) if not k.startswith("hydra")}
+    readme = (ROOT / "README.md").read_text()
+    section = readme[readme.index("## Configuration\n") : readme.index("## Outputs\n")]
+    table = [line for line in section.splitlines() if line.startswith("| `")]
+    named = {
+        k for line in table for k in re.findall(r"`([a-z_]+(?:\.[a-z_]+)+|seed|experiment)`", line.split(" | ")[0])
+    }
+    assert sorted(keys - named) == []
+    assert sorted(named - keys) == []
