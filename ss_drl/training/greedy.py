@@ -14,7 +14,7 @@ import math
 import numpy as np
 import torch
 
-from ss_drl.envs.maze import Maze
+from ss_drl.envs.maze import Maze, goal_reward
 
 
 @dataclasses.dataclass
@@ -102,7 +102,7 @@ def evaluate_policy(
         cells = torch.where(done, cells, table[cells, action])
         if not done[0]:
             path.append(int(cells[0]))
-        hit = (maze.cells(cells) == goal) & ~done
+        hit = goal_reward(maze.cells(cells), goal) & ~done
         lengths[hit] = step
         done |= hit
         if bool(done.all()):
@@ -142,7 +142,7 @@ def greedy_rollout(
     for step in range(1, max_steps + 1):
         cell = int(table[cell, policy[cell]])
         path.append(cell)
-        if cell_of[cell] == goal:
+        if goal_reward(cell_of[cell], goal):
             return GreedyRollout(path, step, True, accuracy)
         if cell in seen:
             break
