@@ -10,7 +10,7 @@ from pathlib import Path
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from ss_drl.training.outputs import FAILED_FILE
 
@@ -236,20 +236,29 @@ def check_group_choices(argv: list[str], conf: Path) -> None:
 
 
 _ABSENT = object()
+#: Hydra options whose argument may hold ``=`` (``-sc install=bash``): a command line with one is Hydra's alone.
+_HYDRA_ONLY = ("-sc", "--shell-completion", "--info", "-i")
+#: The most group combinations of a sweep that :func:`check_override_keys` composes; beyond, the sweep is Hydra's.
+_MAX_COMBINATIONS = 16
 
 
 def check_override_keys(argv: list[str], conf: Path) -> None:
     """Refuse an override of a key the config does not have, e.g. ``agent.lrr=0.1`` (:class:`~ss_drl.training.config.
     ConfigError`, one line naming the key, the nearest keys beside it, and ``+key=...`` to add one), before Hydra
     composes the config: Hydra refuses it too, in seven lines and with exit code 1. The config is composed with the
-    command line's group choices (the first of a sweep list); ``+``/``++``/``~`` overrides and Hydra's own keys are
-    left to Hydra, and so is a command line with sweep functions, interpolations or another search path."""
+    command line's group choices; in a sweep, once per combination of the swept groups' choices (a key that one of
+    them lacks is named with that choice). Everything else is left to Hydra: ``+``/``++``/``~`` overrides, Hydra's own
+    keys and options, sweep functions, interpolations, another search path, and a command line Hydra cannot compose.
+    """
+    import itertools
+
     from hydra import compose, initialize_config_dir
-    from omegaconf import OmegaConf
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
 
     from ss_drl.training.config import ConfigError
 
-    if any(arg.split("=", 1)[0] in _SEARCH_OPTIONS for arg in argv):
+    if any(arg.split("=", 1)[0] in (*_SEARCH_OPTIONS, *_HYDRA_ONLY) for arg in argv):
         return
     groups, keys = [], []
     for arg in argv:
@@ -257,28 +266,41 @@ def check_override_keys(argv: list[str], conf: Path) -> None:
             continue
         key, value = arg.split("=", 1)
         group = key.lstrip("+").split("@", 1)[0]
-        if group.startswith("hydra"):
+        if not group or group.startswith("hydra"):
             continue
-        if any(c in value for c in "()[]{}$*") and (conf / group).is_dir():
-            return  # a sweep function or an interpolation choosing a group: Hydra's to expand
         if (conf / group).is_dir():
-            groups.append(f"{key}={value.split(',', 1)[0]}")
+            if any(c in value for c in "()[]{}$*"):
+                return  # a sweep function or an interpolation choosing a group: Hydra's to expand
+            groups.append([f"{key}={choice}" for choice in value.split(",")])
         elif not key.startswith("+"):
             keys.append(key)
-    if not keys:
+    combinations = list(itertools.product(*groups))
+    if not keys or len(combinations) > _MAX_COMBINATIONS:
         return
-    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = compose("config", overrides=groups)
-    for key in keys:
-        if OmegaConf.select(cfg, key, default=_ABSENT, throw_on_resolution_failure=False) is not _ABSENT:
-            continue
-        parent, _, leaf = key.rpartition(".")
-        node = OmegaConf.select(cfg, parent, default=None) if parent else cfg
-        if not isinstance(node, DictConfig):
-            raise ConfigError(f"{key}: no such key in the config ({parent or key} is not a section of it)")
-        near = difflib.get_close_matches(leaf, [str(k) for k in node.keys()], n=3, cutoff=0.6)
-        hint = f"did you mean {' or '.join(f'{parent}.{n}' if parent else n for n in near)}? " if near else ""
-        raise ConfigError(f"{key}: no such key in the config; {hint}to add a new key, use +{key}=...")
+    sweep = any(len(choices) > 1 for choices in groups)
+    for combination in combinations:
+        try:
+            with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+                cfg = compose("config", overrides=list(combination))
+        except (HydraException, OmegaConfBaseException):
+            return  # a command line Hydra cannot compose: its own report says why
+        for key in keys:
+            if OmegaConf.select(cfg, key, default=_ABSENT, throw_on_resolution_failure=False) is _ABSENT:
+                raise ConfigError(_missing_key(cfg, key, combination if sweep else None))
+
+
+def _missing_key(cfg: DictConfig, key: str, combination) -> str:
+    """The one line for an override of ``key``, which ``cfg`` lacks (``combination``: the sweep's group choices that
+    composed ``cfg``, or None outside a sweep)."""
+    parent, _, leaf = key.rpartition(".")
+    node = OmegaConf.select(cfg, parent, default=None) if parent else cfg
+    if not isinstance(node, DictConfig):
+        return f"{key}: no such key in the config ({parent or key} is not a section of it)"
+    near = difflib.get_close_matches(leaf, [str(k) for k in node.keys()], n=3, cutoff=0.6)
+    hint = f"did you mean {' or '.join(f'{parent}.{n}' if parent else n for n in near)}? " if near else ""
+    if combination is not None:
+        return f"{key}: no such key in the config of the sweep's {' '.join(combination)}; {hint}".rstrip("; ")
+    return f"{key}: no such key in the config; {hint}to add a new key, use +{key}=..."
 
 
 def train_main() -> None:

@@ -57,7 +57,11 @@ def main(argv: list[str] | None = None) -> int:
         help="greedy episodes from S (default: the run's trainer.eval_episodes, derived from env.slip: 1 without "
         "slips, where every episode is the same walk)",
     )  # fmt: skip
-    parser.add_argument("--seed", type=int, default=0, help="seed of the slips' generator (runs with env.slip > 0)")
+    parser.add_argument(
+        "--seed", type=int, default=0,
+        help="seed of the slips' generator (runs with env.slip > 0): its own draws, not the trainer's, so the mean "
+        "length varies around the run's last evaluation",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, default=None, help="PNG path (default: <run dir>/greedy_policy.png)")
     args = parser.parse_args(argv)
     if not (args.run_dir / CHECKPOINT_FILE).is_file():
@@ -69,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     from ss_drl.training.checkpoint import UnreadableCheckpoint
     from ss_drl.training.figures import plot_minigrid_policy, plot_policy
     from ss_drl.training.greedy import eval_episodes, evaluate_policy, greedy_accuracy, greedy_policy
-    from ss_drl.training.learned import BOUND
+    from ss_drl.training.learned import BOUND, within_bound
 
     try:
         agent, maze, cfg = load_agent(args.run_dir)
@@ -92,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"episode 1: length {length}, success {int(ev.success)} (optimal {optimal})")
     else:
         length = round(ev.mean_length, 3)
-        within = ev.success and length <= float(BOUND) * optimal
+        within = within_bound(length, ev.success, optimal)  # the learned rule's own test, in exact fractions
         print(
             f"{len(ev.lengths)} greedy episodes from S at slip {slip:g} (seed {args.seed}): mean length {length}, "
             f"success rate {ev.success_rate:.3f} (optimal {optimal}); within {float(BOUND):g}x the optimum with "

@@ -299,6 +299,15 @@ def test_wrong_type(override, key, value):
     assert "expected" in message
 
 
+@pytest.mark.parametrize("override", ["env.slip=nan", "agent.lr=nan", "agent.tau=inf", "smart_start.c_ss=-inf"])
+def test_a_number_that_is_not_finite_is_refused(override):
+    """NaN passed every range check (all comparisons with it are false): env.slip=nan reached the trainer and raised
+    there, a traceback."""
+    key, value = override.split("=")
+    message = assert_config_error(compose_cfg(overrides=[override]), key, value)
+    assert "expected a finite number" in message
+
+
 @pytest.mark.parametrize("gamma", ["0", "0.0", "1.5", "-0.5"])
 def test_gamma_out_of_range(gamma):
     message = assert_config_error(compose_cfg(overrides=[f"agent.gamma={gamma}"]), "agent.gamma", gamma)
@@ -507,7 +516,17 @@ def test_an_override_of_a_key_the_config_lacks_is_refused_naming_the_nearest():
     )
     # Checked against the config of the groups chosen: the tabular agent has alpha, the DQN none.
     assert refused("+experiment=easy_ss_her", "agent.alpha=0.5").startswith("agent.alpha: no such key in the config")
+    # A sweep is checked once per combination of its groups' choices, whatever their order, naming the one that
+    # lacks the key (and no "+key" advice: the other choices have it).
+    for order in (["easy_ss_her", "easy_tabular_ss"], ["easy_tabular_ss", "easy_ss_her"]):
+        assert refused("-m", f"+experiment={','.join(order)}", "agent.alpha=0.5") == (
+            "agent.alpha: no such key in the config of the sweep's +experiment=easy_ss_her"
+        )
     for ok in (
+        ["-m", "+experiment=easy_ss_her,easy_ss", "agent.lr=0.1"],  # every choice has it
+        ["experiment=easy_ss", "agent.lr=0.1"],  # not composable (a group chosen without +): Hydra's own report
+        ["=x", "agent.lr=1"],
+        ["-sc", "install=bash"],  # Hydra's shell completion
         ["+experiment=easy_ss_her", "agent=tabular", "agent.alpha=0.5", "seed=range(3)"],
         ["+experiment=easy_ss_her", "logger=wandb", "logger.mode=online", "agent.lr=0.01"],
         ["-m", "+experiment=easy_ss,easy_ss_her", "agent.hidden=[64,64]", "env.layout=x.txt"],

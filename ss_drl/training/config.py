@@ -5,6 +5,7 @@ Every problem is reported as one line naming the key, the bad value and what is 
 
 from __future__ import annotations
 
+import math
 import numbers
 
 from omegaconf import DictConfig
@@ -43,6 +44,8 @@ def _number(cfg, key: str, low=None, high=None, low_open=False, high_open=False,
     ok_type = isinstance(value, numbers.Integral if integer else numbers.Real) and not isinstance(value, bool)
     if not ok_type:
         raise ConfigError(f"{key}: expected {kind}, got {value!r} ({type(value).__name__})")
+    if not math.isfinite(value):
+        raise ConfigError(f"{key}: expected a finite number, got {value!r}")
     bad_low = low is not None and (value <= low if low_open else value < low)
     bad_high = high is not None and (value >= high if high_open else value > high)
     if bad_low or bad_high:
