@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from ss_drl.training.checkpoint import UnreadableCheckpoint
     from ss_drl.training.figures import plot_minigrid_policy, plot_policy
-    from ss_drl.training.greedy import eval_episodes, evaluate_policy, greedy_accuracy, greedy_policy
+    from ss_drl.training.greedy import evaluate_policy, evaluation_episodes, greedy_accuracy, greedy_policy, optimum
     from ss_drl.training.learned import BOUND, within_bound
 
     try:
@@ -83,11 +83,8 @@ def main(argv: list[str] | None = None) -> int:
     # As the trainer evaluates: the greedy policy rolled out in the env's dynamics, slips included, against the
     # shortest path or, under slips, the optimal policy's expected steps from S.
     slip = float(cfg.env.get("slip", 0) or 0)
-    episodes = args.episodes or cfg.trainer.get("eval_episodes") or eval_episodes(slip)
-    if slip > 0:
-        optimal = round(float(maze.expected_steps(slip)[0][maze.start_state]), 3)
-    else:
-        optimal = maze.shortest_path_length
+    episodes = args.episodes or evaluation_episodes(slip, cfg.trainer.get("eval_episodes"))
+    optimal = optimum(maze, slip)
     policy = greedy_policy(agent, maze)
     generator = torch.Generator().manual_seed(args.seed)
     ev = evaluate_policy(policy, maze, cfg.env.max_steps, int(episodes), slip, generator)

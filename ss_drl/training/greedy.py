@@ -114,6 +114,21 @@ def evaluate_policy(
     return Evaluation(lengths.tolist(), done.tolist(), path)
 
 
+def optimum(maze: Maze, slip: float) -> float | int:
+    """What an evaluation's length is measured against: the shortest path from S, or under slips the optimal
+    policy's expected steps from S (value iteration on the true model), rounded once, as ``summary.json`` holds it,
+    so that plot.py's learned rule reads the same optimum."""
+    if slip > 0:
+        return round(float(maze.expected_steps(slip)[0][maze.start_state]), 3)
+    return maze.shortest_path_length
+
+
+def evaluation_episodes(slip: float, configured: int | None) -> int:
+    """The episodes of one evaluation: ``trainer.eval_episodes`` when set (``configured``), else
+    :func:`eval_episodes`."""
+    return eval_episodes(slip) if configured is None else int(configured)
+
+
 def eval_episodes(slip: float) -> int:
     """``trainer.eval_episodes`` when it is not set: 1 with deterministic moves, else ``ceil(240 * slip)`` (24 at slip
     0.1, 60 at 0.25). The mean length of n episodes of the optimal policy varies as ``slip / n`` (relative to the

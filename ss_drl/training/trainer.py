@@ -37,7 +37,7 @@ from ss_drl.training import checkpoint as ckpt
 from ss_drl.training.collector import Episode, MazeCollector
 from ss_drl.training.config import validate_config
 from ss_drl.training.figures import plot_visit_counts
-from ss_drl.training.greedy import eval_episodes, evaluate_policy, greedy_accuracy, greedy_policy
+from ss_drl.training.greedy import evaluate_policy, evaluation_episodes, greedy_accuracy, greedy_policy, optimum
 from ss_drl.training.learned import EvalRecord, learned
 from ss_drl.training.outputs import (
     FAILED_FILE,
@@ -218,13 +218,8 @@ class Trainer:
         # The optimum: the shortest path, or under slips the optimal policy's expected steps from S (value iteration
         # on the true model); each evaluation rolls the greedy policy out eval_episodes times in the env's dynamics.
         self.slip = float(cfg.env.slip)
-        if self.slip > 0:
-            # Rounded once, as summary.json holds it, so that plot.py's learned rule reads the same optimum.
-            self.optimal_length = round(float(self.maze.expected_steps(self.slip)[0][self.maze.start_state]), 3)
-        else:
-            self.optimal_length = self.maze.shortest_path_length
-        episodes = cfg.trainer.eval_episodes
-        self.eval_episodes = eval_episodes(self.slip) if episodes is None else int(episodes)
+        self.optimal_length = optimum(self.maze, self.slip)
+        self.eval_episodes = evaluation_episodes(self.slip, cfg.trainer.eval_episodes)
         self.eval_generator = torch.Generator().manual_seed(int(cfg.seed) + 3_000_017)
         # The slips draw from the env's own generator, apart from the training RNG.
         self.env = BatchedMazeEnv(
