@@ -586,11 +586,9 @@ def table_row(maze: str, method: str, runs: Sequence[Run], n_resamples: int = 10
     if first:
         fg_median = float(np.median(first))
     near = [s for s in (near_optimal_env_step(r) for r in runs) if s is not None]
-    walls = [float(r.summary[SK_WALL]) for r in runs if _is_number(r.summary.get(SK_WALL))]
-    accuracy = [float(r.summary[SK_ACCURACY]) for r in runs if _is_number(r.summary.get(SK_ACCURACY))]
-    optimal = [float(r.summary[SK_OPTIMAL]) for r in runs if _is_number(r.summary.get(SK_OPTIMAL))]
-    rates = [float(r.summary[SK_EVAL_RATE]) for r in runs if _is_number(r.summary.get(SK_EVAL_RATE))]
-    lengths = [float(r.summary[SK_EVAL_LENGTH]) for r in runs if _is_number(r.summary.get(SK_EVAL_LENGTH))]
+    walls, accuracy, optimal, rates, lengths = (
+        _summary_numbers(runs, key) for key in (SK_WALL, SK_ACCURACY, SK_OPTIMAL, SK_EVAL_RATE, SK_EVAL_LENGTH)
+    )
     rules = [rule for rule in (run_learned(r) for r in runs) if rule is not None]
     learned_steps = [rule.env_step for rule in rules if rule.env_step is not None]
     learned_walls = [rule.wall_s for rule in rules if rule.env_step is not None and rule.wall_s is not None]
@@ -621,6 +619,11 @@ def table_row(maze: str, method: str, runs: Sequence[Run], n_resamples: int = 10
         eval_length=float(np.mean(lengths)) if lengths else None,
         wall_median=float(np.median(walls)) if walls else None,
     )
+
+
+def _summary_numbers(runs: Sequence[Run], key: str) -> list[float]:
+    """The summary's ``key`` of each run that has it as a finite number (older runs may lack it)."""
+    return [float(r.summary[key]) for r in runs if _is_number(r.summary.get(key))]
 
 
 def _is_number(x) -> bool:
