@@ -199,8 +199,40 @@ def _fail(message: str, code: int):
     sys.exit(code)
 
 
-#: Command-line options that change where Hydra finds configs: with them, config group choices are Hydra's to check.
-_SEARCH_OPTIONS = ("--config-dir", "-cd", "--config-path", "-cp", "--config-name", "-cn", "hydra.searchpath")
+#: Command-line options that change where Hydra finds configs, or whose argument may hold ``=`` (``-sc install=bash``):
+#: with any of them the command line is Hydra's to check.
+_HYDRA_ONLY = (
+    "--config-dir", "-cd", "--config-path", "-cp", "--config-name", "-cn", "hydra.searchpath",
+    "-sc", "--shell-completion", "--info", "-i",
+)  # fmt: skip
+#: Characters of a sweep function (``glob(...)``, ``range(...)``) or an interpolation: Hydra expands such a value.
+_EXPANDED = "()[]{}$*"
+#: The most group combinations of a sweep that :func:`check_override_keys` composes; beyond, the sweep is Hydra's.
+_MAX_COMBINATIONS = 16
+_ABSENT = object()
+
+
+def _command_line(argv: list[str], conf: Path) -> list[tuple[str, str, str | None]] | None:
+    """``(key, value, group)`` of each ``key=value`` override of the command line, ``group`` the config group it
+    chooses (a folder of ``conf``) or None for a value; None when the command line is Hydra's to check
+    (:data:`_HYDRA_ONLY`). Options, removals (``~key``) and Hydra's own keys are left out."""
+    if any(arg.split("=", 1)[0] in _HYDRA_ONLY for arg in argv):
+        return None
+    out = []
+    for arg in argv:
+        if arg.startswith(("-", "~")) or "=" not in arg:
+            continue
+        key, value = arg.split("=", 1)
+        name = key.lstrip("+").split("@", 1)[0]
+        if name and not name.startswith("hydra"):
+            out.append((key, value, name if (conf / name).is_dir() else None))
+    return out
+
+
+def _did_you_mean(name: str, names, prefix: str = "") -> str:
+    """``did you mean a or b?`` for the names nearest ``name`` (each with ``prefix``), or "" when none is near."""
+    near = difflib.get_close_matches(name, [str(n) for n in names], n=3, cutoff=0.6)
+    return f"did you mean {' or '.join(prefix + n for n in near)}?" if near else ""
 
 
 def check_group_choices(argv: list[str], conf: Path) -> None:
@@ -210,36 +242,19 @@ def check_group_choices(argv: list[str], conf: Path) -> None:
     checked item by item; sweep functions (``glob(...)``, ``range(...)``) and interpolations are left to Hydra."""
     from ss_drl.training.config import ConfigError
 
-    if any(arg.split("=", 1)[0] in _SEARCH_OPTIONS for arg in argv):
-        return
-    for arg in argv:
-        if arg.startswith(("-", "~")) or "=" not in arg:
-            continue
-        key, value = arg.split("=", 1)
-        group = key.lstrip("+").split("@", 1)[0]
-        if not group or group.startswith("hydra") or not (conf / group).is_dir():
-            continue  # a value (agent.lr=...), or a group of Hydra's own or of a plugin
-        if any(c in value for c in "()[]{}$*"):
-            continue
+    for _, value, group in _command_line(argv, conf) or ():
+        if group is None or any(c in value for c in _EXPANDED):
+            continue  # a value (agent.lr=...), or a choice Hydra expands
         for choice in (v.strip().strip("'\"") for v in value.split(",")):
             if not choice or choice == "null" or (conf / group / f"{choice}.yaml").is_file():
                 continue
             names = sorted(p.stem for p in (conf / group).glob("*.yaml"))
-            near = difflib.get_close_matches(choice, names, n=3, cutoff=0.6)
-            if near:
-                hint = f"did you mean {' or '.join(near)}?"
-            elif len(names) <= 12:
-                hint = f"the choices: {', '.join(names)}"
-            else:
-                hint = f"see {conf / group}/ for the choices"
+            hint = _did_you_mean(choice, names)
+            if not hint:
+                hint = (
+                    f"the choices: {', '.join(names)}" if len(names) <= 12 else f"see {conf / group}/ for the choices"
+                )
             raise ConfigError(f"{group}: unknown value {choice!r} (no {conf / group / choice}.yaml); {hint}")
-
-
-_ABSENT = object()
-#: Hydra options whose argument may hold ``=`` (``-sc install=bash``): a command line with one is Hydra's alone.
-_HYDRA_ONLY = ("-sc", "--shell-completion", "--info", "-i")
-#: The most group combinations of a sweep that :func:`check_override_keys` composes; beyond, the sweep is Hydra's.
-_MAX_COMBINATIONS = 16
 
 
 def check_override_keys(argv: list[str], conf: Path) -> None:
@@ -258,18 +273,10 @@ def check_override_keys(argv: list[str], conf: Path) -> None:
 
     from ss_drl.training.config import ConfigError
 
-    if any(arg.split("=", 1)[0] in (*_SEARCH_OPTIONS, *_HYDRA_ONLY) for arg in argv):
-        return
     groups, keys = [], []
-    for arg in argv:
-        if arg.startswith(("-", "~")) or "=" not in arg:
-            continue
-        key, value = arg.split("=", 1)
-        group = key.lstrip("+").split("@", 1)[0]
-        if not group or group.startswith("hydra"):
-            continue
-        if (conf / group).is_dir():
-            if any(c in value for c in "()[]{}$*"):
+    for key, value, group in _command_line(argv, conf) or ():
+        if group is not None:
+            if any(c in value for c in _EXPANDED):
                 return  # a sweep function or an interpolation choosing a group: Hydra's to expand
             groups.append([f"{key}={choice}" for choice in value.split(",")])
         elif not key.startswith("+"):
@@ -296,11 +303,12 @@ def _missing_key(cfg: DictConfig, key: str, combination) -> str:
     node = OmegaConf.select(cfg, parent, default=None) if parent else cfg
     if not isinstance(node, DictConfig):
         return f"{key}: no such key in the config ({parent or key} is not a section of it)"
-    near = difflib.get_close_matches(leaf, [str(k) for k in node.keys()], n=3, cutoff=0.6)
-    hint = f"did you mean {' or '.join(f'{parent}.{n}' if parent else n for n in near)}? " if near else ""
+    hint = _did_you_mean(leaf, node.keys(), f"{parent}." if parent else "")
     if combination is not None:
-        return f"{key}: no such key in the config of the sweep's {' '.join(combination)}; {hint}".rstrip("; ")
-    return f"{key}: no such key in the config; {hint}to add a new key, use +{key}=..."
+        return f"{key}: no such key in the config of the sweep's {' '.join(combination)}" + (
+            f"; {hint}" if hint else ""
+        )
+    return f"{key}: no such key in the config; {hint + ' ' if hint else ''}to add a new key, use +{key}=..."
 
 
 def train_main() -> None:
