@@ -496,16 +496,24 @@ def test_batch_larger_than_buffer():
 
 
 # --- (c2) an override of a key the config does not have: one line before Hydra composes anything ---
+def _refusal(check):
+    """``refused(*argv)``: the one-line ConfigError message of the command-line ``check`` on ``argv``."""
+
+    def refused(*argv: str) -> str:
+        with pytest.raises(ConfigError) as info:
+            check(list(argv), CONF)
+        message = str(info.value)
+        assert "\n" not in message, message
+        return message
+
+    return refused
+
+
 def test_an_override_of_a_key_the_config_lacks_is_refused_naming_the_nearest():
     """Hydra refuses ``agent.lrr=0.1`` too, in seven lines with exit code 1; this is the one line."""
     from ss_drl.cli import check_override_keys
 
-    def refused(*argv: str) -> str:
-        with pytest.raises(ConfigError) as info:
-            check_override_keys(list(argv), CONF)
-        message = str(info.value)
-        assert "\n" not in message, message
-        return message
+    refused = _refusal(check_override_keys)
 
     assert refused("+experiment=easy_ss_her", "agent.lrr=0.1") == (
         "agent.lrr: no such key in the config; did you mean agent.lr? to add a new key, use +agent.lrr=..."
@@ -542,12 +550,7 @@ def test_an_override_of_a_key_the_config_lacks_is_refused_naming_the_nearest():
 def test_an_unknown_group_choice_is_refused_naming_the_group():
     from ss_drl.cli import check_group_choices
 
-    def refused(*argv: str) -> str:
-        with pytest.raises(ConfigError) as info:
-            check_group_choices(list(argv), CONF)
-        message = str(info.value)
-        assert "\n" not in message, message
-        return message
+    refused = _refusal(check_group_choices)
 
     message = refused("+experiment=no_such_name", "seed=1")
     assert message.startswith("experiment: unknown value 'no_such_name' (no ") and str(CONF / "experiment") in message
