@@ -163,9 +163,12 @@ def test_exploration_inside_a_batch_sees_the_moves_the_model_has_not_counted_yet
     ss = _controller(maze, _hand_model(maze))
     _start(ss, maze, cell=2)
     assert _step(ss, maze, 2, update_model=False) == (R, 3)
-    # 2 is fully tried now, though the count model still lacks 2 -> 3; the frontier knows, and 3 is tried next.
-    action, _ = _step(ss, maze, 3, update_model=False)
-    assert action in (R, D, L, U) and ss.frontier.tried[3, action]
+    # 2 is fully tried now, though the count model still lacks 2 -> 3 (it still counts right in 2 as untried).
+    assert ss.counts.sa_counts.view(-1, 4)[2, R] == 0
+    assert ss.frontier.untried(torch.tensor([2])).tolist() == [[False] * 4]
+    # Back in 2 within the same batch, the controller reads the frontier: right is not tried a second time. The
+    # count model knows no route out of 2 to a cell with an untried move (2 -> 3 is not in it yet), so the policy acts.
+    assert _step(ss, maze, 2, update_model=False) == (SENTINEL, 2)
 
 
 def test_exploration_follows_the_frontier_rule_until_the_goal():

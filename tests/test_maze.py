@@ -447,17 +447,19 @@ def test_random_maze_misleading_refuses_when_no_start_works():
 
 
 @pytest.mark.parametrize(
-    "kwargs",
+    ("kwargs", "message"),
     [
-        dict(placement="farthest"),
-        dict(placement="misleading", radius=0),
-        dict(placement="misleading", path_range=(0, 10)),
-        dict(placement="misleading", path_range=(20, 10)),
-        dict(placement="misleading", path_range=(10,)),
+        (dict(placement="farthest"), r"unknown placement 'farthest'"),
+        (dict(placement="misleading", radius=0), r"radius must be >= 1 \(got 0\)"),
+        (dict(placement="misleading", path_range=(0, 10)), r"path_range must be \(low, high\)"),
+        (dict(placement="misleading", path_range=(20, 10)), r"path_range must be \(low, high\)"),
+        (dict(placement="misleading", path_range=(10,)), r"path_range must be \(low, high\)"),
     ],
 )
-def test_random_maze_misleading_bad_arguments(kwargs):
-    with pytest.raises(ValueError):
+def test_random_maze_misleading_bad_arguments(kwargs, message):
+    # Each refusal is the argument check's own: on an 11x11 maze the default path range (150-250) fits no start, so a
+    # bare ValueError would also come from the placement search, or from unpacking a one-element path_range.
+    with pytest.raises(MazeError, match=message):
         random_maze(11, 11, seed=0, **kwargs)
 
 
