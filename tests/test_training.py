@@ -182,9 +182,10 @@ def test_train_csv_rows_every_log_interval_updates(tmp_path):
     assert summary["env_steps"] == 1500
     for r in rows:
         assert 100 <= r["env_steps"] <= 1500
-        assert r["loss"] >= 0 and r["td_abs"] >= 0 and r["updates_per_s"] > 0
+        assert r["loss"] > 0 and r["td_abs"] > 0 and r["updates_per_s"] > 0  # no regression fits to 0 by 100 updates
         assert r["her_share"] == pytest.approx(round(32 * 4 / 5) / 32)  # k = 4: 26 of 32 items relabeled
-        assert 0 <= r["goal_share"] <= 1
+        # The items HER did not relabel keep the real goal G (relabeled ones may draw G too).
+        assert 1 - r["her_share"] - 1e-6 <= r["goal_share"] <= 1
         assert r["epsilon"] == pytest.approx(linear_schedule(int(r["env_steps"]) - 16, 1.0, 0.05, 5000), abs=0.01)
     assert set(UPDATE_METRICS) <= set(TRAIN_COLUMNS)
     # Without HER no goal is relabeled, and every batch's goal is G.
