@@ -355,6 +355,17 @@ def test_undiscounted_needs_a_step_cost():
         validate_config(compose_cfg(overrides=["agent.gamma=1", "agent.step_cost=0"]))
 
 
+def test_sparse_tables_needs_a_table_and_polyak_targets():
+    """Refused before training (exit 2, nothing written), not when the agent is built (it was a traceback-free but
+    late exit 1): the lazy Polyak step needs soft target updates, and the coords encoder has no per-cell table."""
+    with pytest.raises(ConfigError, match=r"^agent.sparse_tables: needs agent.target_update=soft"):
+        validate_config(compose_cfg(overrides=["agent.sparse_tables=true", "agent.target_update=hard"]))
+    with pytest.raises(ConfigError, match=r"^agent.sparse_tables: the 'coords' encoder has no per-cell table"):
+        validate_config(compose_cfg(overrides=["agent.sparse_tables=true", "agent.encoder=coords"]))
+    for encoder in ("hybrid", "embedding"):
+        validate_config(compose_cfg(overrides=["agent.sparse_tables=true", f"agent.encoder={encoder}"]))
+
+
 def test_bound_all_actions_needs_a_distance_bound():
     with pytest.raises(ConfigError, match=r"^agent.bound_all_actions: needs agent.distance_floor or"):
         validate_config(

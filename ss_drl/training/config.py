@@ -213,6 +213,12 @@ def _trainer_and_learner(cfg: DictConfig) -> None:
             raise ConfigError("agent.bound_all_actions: needs agent.distance_floor or agent.distance_ceiling")
         if agent.optimistic_floor and not (agent.distance_floor and agent.distance_ceiling):
             raise ConfigError("agent.optimistic_floor: needs agent.distance_floor and agent.distance_ceiling")
+        if agent.sparse_tables and agent.target_update != "soft":
+            raise ConfigError("agent.sparse_tables: needs agent.target_update=soft (its Polyak step is lazy)")
+        if agent.sparse_tables and agent.encoder == "coords":
+            raise ConfigError(
+                "agent.sparse_tables: the 'coords' encoder has no per-cell table (use hybrid or embedding)"
+            )
         if agent.gamma == 1 and agent.step_cost == 0:
             raise ConfigError("agent.gamma: 1 needs agent.step_cost > 0 (undiscounted 0/1 rewards make every value 1)")
     # HER
