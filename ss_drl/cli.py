@@ -79,11 +79,16 @@ def _refuse_old_checkpoint(run_dir: Path) -> None:
 
 
 def _refuse_on(check, error: type[Exception]) -> None:
-    """Run ``check``; on ``error``, one line on stderr and exit 2, before Hydra writes anything."""
+    """Run ``check``; on ``error``, one line on stderr and exit 2, before Hydra writes anything. Any other exception
+    refuses the run too, named by its type: Hydra turns an exception in a callback into a warning and starts the job
+    anyway, unchecked (a checkpoint whose config was not a mapping did that)."""
     try:
         check()
     except error as exc:
         print(f"ss-drl: config error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    except Exception as exc:  # noqa: BLE001 - a check that fails is a refusal, never a run that goes on unchecked
+        print(f"ss-drl: config error: the check before the run failed: {type(exc).__name__}: {exc}", file=sys.stderr)
         sys.exit(2)
 
 

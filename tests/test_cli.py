@@ -230,3 +230,20 @@ def test_smart_start_run(ss_run):
     summary = json.loads((run_dir / SUMMARY_FILE).read_text())
     assert summary["completed"] is True and summary["method"] == "ss_her"
     assert summary["config"]["smart_start"]["eta"] == 1
+
+
+def test_a_check_that_fails_refuses_the_run_in_one_line(capsys):
+    """Hydra turns an exception raised in a callback into a warning and starts the job anyway: a check before the
+    run that fails for any reason (here a KeyError) must refuse the run (exit 2, one line), never let it go on
+    unchecked."""
+    from ss_drl.cli import _refuse_on
+    from ss_drl.training.config import ConfigError
+
+    def broken():
+        raise KeyError("agent")
+
+    with pytest.raises(SystemExit) as info:
+        _refuse_on(broken, ConfigError)
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["ss-drl: config error: the check before the run failed: KeyError: 'agent'"]

@@ -200,7 +200,7 @@ def test_resume_refuses_outputs_from_before_the_evaluation_list(tmp_path):
     state = torch.load(tmp_path / CHECKPOINT_FILE, weights_only=False)
     del state["evals"]
     torch.save(state, tmp_path / CHECKPOINT_FILE)
-    with pytest.raises(ValueError, match="checkpoint predates the list of evaluations"):
+    with pytest.raises(ValueError, match=r"checkpoint.pt predates the list of evaluations"):
         Trainer(compose_cfg(*RUN, "trainer.total_env_steps=400", "trainer.resume=true"), tmp_path)
     # An eval.csv without wall_s: rows of 5 fields under its 4-field header would make a file no one can parse.
     old = tmp_path / "old"

@@ -199,9 +199,9 @@ def test_a_checkpoint_from_before_the_learners_were_renamed_is_refused_on_resume
 
 def test_check_resume_refuses_what_cannot_be_continued(tmp_path):
     """The check that runs before anything is written: an old or unknown format, an unreadable checkpoint, another
-    config, no checkpoint; each one line naming trainer.resume. A checkpoint of this format with the same config
-    (budgets aside) passes, and a new run (resume false) reads nothing."""
-    from ss_drl.training.checkpoint import FORMAT, FORMAT_KEY, check_resume, task_config
+    config, no checkpoint, one that lacks what the trainer reads; each one line naming trainer.resume. A checkpoint of
+    this format with the same config (budgets aside) passes, and a new run (resume false) reads nothing."""
+    from ss_drl.training.checkpoint import FORMAT, FORMAT_KEY, STATE_KEYS, check_resume, task_config
     from ss_drl.training.config import ConfigError
 
     cfg = compose_cfg("+experiment=easy_small_dqn_her", "trainer.resume=true")
@@ -219,13 +219,23 @@ def test_check_resume_refuses_what_cannot_be_continued(tmp_path):
         return message
 
     config = task_config(cfg)
+    full = {FORMAT_KEY: FORMAT, **dict.fromkeys(STATE_KEYS), "config": config}  # what the trainer reads, all there
     assert refused({"config": config}) == OLD_CHECKPOINT.format(path=path)
     assert refused({FORMAT_KEY: 1, "config": config}) == OLD_CHECKPOINT.format(path=path)
     assert "format 3, which this version (format 2) cannot read" in refused({FORMAT_KEY: 3, "config": config})
     assert f"{path} cannot be read" in refused(b"not a checkpoint")
-    assert "config 'seed' differs" in refused({FORMAT_KEY: FORMAT, "config": {**config, "seed": 1}})
+    assert "config 'seed' differs" in refused({**full, "config": {**config, "seed": 1}})
+    # Of this format but not what the trainer wrote: refused here, before Hydra rewrites the run's .hydra/ files (it
+    # was a KeyError or AttributeError traceback in the job, after them).
+    assert refused({k: v for k, v in full.items() if k != "agent"}) == (
+        f"trainer.resume: {path} lacks agent: not a checkpoint this trainer wrote"
+    )
+    assert refused({**full, "config": "easy"}) == f"trainer.resume: {path} holds no config mapping; start the run anew"
+    assert refused({k: v for k, v in full.items() if k != "evals"}) == (
+        f"trainer.resume: {path} predates the list of evaluations; start the run anew"
+    )
     other_budget = {**config, "trainer": {**config["trainer"], "total_env_steps": 1}}
-    torch.save({FORMAT_KEY: FORMAT, "config": other_budget}, path)
+    torch.save({**full, "config": other_budget}, path)
     check_resume(cfg, tmp_path)  # budgets may change on resume
     check_resume(compose_cfg("+experiment=easy_small_dqn_her"), tmp_path / "missing")  # a new run: nothing to read
     path.unlink()

@@ -214,10 +214,29 @@ def check_resume(cfg: DictConfig, run_dir: Path) -> None:
         resumption = resume_from(run_dir, mmap=True)
     except FileNotFoundError as exc:
         raise ConfigError(str(exc)) from None
-    state = resumption.state
-    if "config" not in state:
-        raise ConfigError(f"trainer.resume: {resumption.path} holds no config; start the run anew")
-    check_compatible(state["config"], task_config(cfg))
+    check_state(resumption.state, resumption.path)
+    check_compatible(resumption.state["config"], task_config(cfg))
+
+
+#: What the trainer reads from a checkpoint of this :data:`FORMAT` (``eval_rng``, ``last_success_rate`` and
+#: ``update_log`` may be absent: older checkpoints of the format lack them, and the trainer starts them anew).
+STATE_KEYS = (
+    "agent", "counts", "smart_start", "collector", "episodes", "first_goal", "last_accuracy", "evals", "next_eval",
+    "next_checkpoint", "next_log", "ss_targets", "recent", "wall_s", "rows", "rng", "config",
+)  # fmt: skip
+
+
+def check_state(state: dict, path: Path) -> None:
+    """A checkpoint of this format that the trainer can continue from: every :data:`STATE_KEYS` entry there, and the
+    config a mapping. Raises :class:`ConfigError` (one line naming ``path``) otherwise: before the run starts
+    (:func:`check_resume`) and when the trainer loads it."""
+    if "evals" not in state and "agent" in state:  # written before 844f19d: no evaluation list, an older loop's state
+        raise ConfigError(f"trainer.resume: {path} predates the list of evaluations; start the run anew")
+    missing = [key for key in STATE_KEYS if key not in state]
+    if missing:
+        raise ConfigError(f"trainer.resume: {path} lacks {', '.join(missing)}: not a checkpoint this trainer wrote")
+    if not isinstance(state["config"], dict):
+        raise ConfigError(f"trainer.resume: {path} holds no config mapping; start the run anew")
 
 
 def task_config(cfg: DictConfig) -> dict:

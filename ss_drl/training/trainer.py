@@ -517,8 +517,7 @@ class Trainer:
             print(f"ss-drl: warning: {resumption.warning}", file=sys.stderr)
             self._keep_previous = False  # checkpoint.pt is damaged: the next save replaces it, keeping prev
         state = resumption.state
-        if "evals" not in state:  # written before 844f19d: no evaluation list, and the old loop's collector state
-            raise ValueError("trainer.resume: the checkpoint predates the list of evaluations; start the run anew")
+        ckpt.check_state(state, resumption.path)
         ckpt.check_compatible(state["config"], self.resolved)
         self.agent.load_state_dict(state["agent"])
         self.counts.load_state_dict(state["counts"])
