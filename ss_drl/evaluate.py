@@ -40,6 +40,7 @@ def load_agent(run_dir: Path):
         if ckpt.written_before_rename(state):
             problem += f": read it with a checkout of {ckpt.LAST_OLD_COMMIT}"
         raise OldCheckpoint(problem)
+    ckpt.check_state(state, path)
     cfg = OmegaConf.create(state["config"])
     maze = make_maze(cfg.env)
     counts = CountModel(maze.n_states, maze.n_actions)
@@ -47,6 +48,23 @@ def load_agent(run_dir: Path):
     agent = make_agent(cfg, maze, int(cfg.seed), counts)
     agent.load_state_dict(state["agent"])
     return agent, maze, cfg
+
+
+def _out_problem(out: Path) -> str | None:
+    """Why the figure cannot be written to ``out`` (checked before the evaluation), or None."""
+    import matplotlib.pyplot as plt
+
+    formats = plt.figure().canvas.get_supported_filetypes()
+    plt.close("all")
+    if out.is_dir():
+        return "is a directory; give a file name such as greedy_policy.png"
+    if not out.parent.is_dir():
+        return f"its folder {out.parent} does not exist"
+    if out.suffix.lstrip(".").lower() not in formats:
+        return (
+            f"unknown figure format {out.suffix or '(none)'!r} (allowed: {', '.join('.' + f for f in sorted(formats))})"
+        )
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -70,15 +88,25 @@ def main(argv: list[str] | None = None) -> int:
     if args.episodes is not None and args.episodes < 1:
         print(f"evaluate.py: error: --episodes: {args.episodes} is out of range (allowed: >= 1)", file=sys.stderr)
         return 2
+    out = args.out or args.run_dir / "greedy_policy.png"
+    problem = _out_problem(out)
+    if problem:
+        print(f"evaluate.py: error: --out: {out}: {problem}", file=sys.stderr)
+        return 2
     from ss_drl.training.checkpoint import UnreadableCheckpoint
+    from ss_drl.training.config import ConfigError
     from ss_drl.training.figures import plot_minigrid_policy, plot_policy
     from ss_drl.training.greedy import evaluate_policy, evaluation_episodes, greedy_accuracy, greedy_policy, optimum
     from ss_drl.training.learned import BOUND, within_bound
 
     try:
         agent, maze, cfg = load_agent(args.run_dir)
-    except (OldCheckpoint, UnreadableCheckpoint) as exc:
+    except (OldCheckpoint, UnreadableCheckpoint, ConfigError) as exc:
         print(f"evaluate.py: error: {exc}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # noqa: BLE001 - a checkpoint this version cannot rebuild an agent from: one line
+        path = args.run_dir / CHECKPOINT_FILE
+        print(f"evaluate.py: error: {path}: cannot rebuild the agent: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 2
     # As the trainer evaluates: the greedy policy rolled out in the env's dynamics, slips included, against the
     # shortest path or, under slips, the optimal policy's expected steps from S.
@@ -101,7 +129,6 @@ def main(argv: list[str] | None = None) -> int:
         )
     accuracy = greedy_accuracy(policy, maze)
     print(f"greedy accuracy: {accuracy:.3f} (fraction of states whose greedy action is on a shortest path)")
-    out = args.out or args.run_dir / "greedy_policy.png"
     what = "greedy length" if len(ev.lengths) == 1 else "mean greedy length"
     title = f"{cfg.experiment} seed {cfg.seed}: {what} {length} (optimal {optimal})"
     if cfg.env.get("id"):  # a MiniGrid task: its own frame with the greedy path

@@ -48,7 +48,14 @@ def truncate(path: Path, keep: float = 0.5) -> None:
 
 
 def state(n: int, config: dict | None = None) -> dict:
-    return {FORMAT_KEY: FORMAT, "n": n, "collector": {"env_steps": 100 * n}, "config": config or {}}
+    """A checkpoint of this format with every key the trainer reads (:data:`ckpt.STATE_KEYS`), numbered ``n``."""
+    return {
+        FORMAT_KEY: FORMAT,
+        **dict.fromkeys(ckpt.STATE_KEYS),
+        "n": n,
+        "collector": {"env_steps": 100 * n},
+        "config": config or {},
+    }
 
 
 # --- the save's rotation --------------------------------------------------------------------------------------------

@@ -120,3 +120,37 @@ def test_greedy_accuracy_by_hand():
     for c in worse:
         spoiled[c] = next(a for a in range(4) if not _closer(maze, c, a, dist))
     assert greedy_accuracy(spoiled, maze) == pytest.approx(1 - 5 / len(reach))
+
+
+def test_evaluate_refuses_what_it_cannot_evaluate_in_one_line(tmp_path, capsys):
+    """A checkpoint of this format that lacks what the trainer writes, one this version cannot rebuild an agent
+    from, and an --out it cannot write: each one line naming the file and the problem, exit 2, before any
+    evaluation (these were KeyError, ValueError and FileNotFoundError tracebacks)."""
+    from ss_drl.evaluate import main
+    from ss_drl.training.checkpoint import FORMAT, FORMAT_KEY, STATE_KEYS, task_config
+
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        config = task_config(compose("config", overrides=["+experiment=easy_small_ss_her"]))
+    path = tmp_path / "checkpoint.pt"
+
+    def refused(*argv) -> list[str]:
+        assert main([str(tmp_path), *map(str, argv)]) == 2
+        captured = capsys.readouterr()
+        assert captured.out == ""  # nothing evaluated
+        return captured.err.strip().splitlines()
+
+    state = {FORMAT_KEY: FORMAT, **dict.fromkeys(STATE_KEYS), "config": config}
+    torch.save({k: v for k, v in state.items() if k != "agent"}, path)
+    assert refused() == [f"evaluate.py: error: {path} lacks agent: not a checkpoint this trainer wrote"]
+    torch.save({**state, "counts": {}}, path)  # every key there, but no count model to load
+    assert refused() == [f"evaluate.py: error: {path}: cannot rebuild the agent: KeyError: 'n_states'"]
+    missing = tmp_path / "nowhere" / "x.png"
+    assert refused("--out", missing) == [
+        f"evaluate.py: error: --out: {missing}: its folder {missing.parent} does not exist"
+    ]
+    assert refused("--out", tmp_path) == [
+        f"evaluate.py: error: --out: {tmp_path}: is a directory; give a file name such as greedy_policy.png"
+    ]
+    (line,) = refused("--out", tmp_path / "x.xyz")
+    assert line.startswith(f"evaluate.py: error: --out: {tmp_path / 'x.xyz'}: unknown figure format '.xyz' (allowed: ")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.pt"]  # nothing written

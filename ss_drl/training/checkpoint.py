@@ -214,7 +214,7 @@ def check_resume(cfg: DictConfig, run_dir: Path) -> None:
         resumption = resume_from(run_dir, mmap=True)
     except FileNotFoundError as exc:
         raise ConfigError(str(exc)) from None
-    check_state(resumption.state, resumption.path)
+    check_state(resumption.state, resumption.path, "trainer.resume: ")
     check_compatible(resumption.state["config"], task_config(cfg))
 
 
@@ -226,17 +226,17 @@ STATE_KEYS = (
 )  # fmt: skip
 
 
-def check_state(state: dict, path: Path) -> None:
+def check_state(state: dict, path: Path, prefix: str = "") -> None:
     """A checkpoint of this format that the trainer can continue from: every :data:`STATE_KEYS` entry there, and the
-    config a mapping. Raises :class:`ConfigError` (one line naming ``path``) otherwise: before the run starts
-    (:func:`check_resume`) and when the trainer loads it."""
+    config a mapping. Raises :class:`ConfigError` (one line naming ``path``, after ``prefix``) otherwise: before the
+    run starts (:func:`check_resume`), when the trainer loads it, and in evaluate.py."""
     if "evals" not in state and "agent" in state:  # written before 844f19d: no evaluation list, an older loop's state
-        raise ConfigError(f"trainer.resume: {path} predates the list of evaluations; start the run anew")
+        raise ConfigError(f"{prefix}{path} predates the list of evaluations; start the run anew")
     missing = [key for key in STATE_KEYS if key not in state]
     if missing:
-        raise ConfigError(f"trainer.resume: {path} lacks {', '.join(missing)}: not a checkpoint this trainer wrote")
+        raise ConfigError(f"{prefix}{path} lacks {', '.join(missing)}: not a checkpoint this trainer wrote")
     if not isinstance(state["config"], dict):
-        raise ConfigError(f"trainer.resume: {path} holds no config mapping; start the run anew")
+        raise ConfigError(f"{prefix}{path} holds no config mapping; start the run anew")
 
 
 def task_config(cfg: DictConfig) -> dict:
