@@ -268,6 +268,36 @@ def test_exploration_before_the_first_goal_by_hand(tmp_path, maze):
     assert "no end_state/states_visited columns" in exploration_before_first_goal(tmp_path, maze)["note"]
 
 
+def test_a_damaged_episodes_csv_is_named_with_its_line(tmp_path, maze):
+    """Bytes that are not text, a missing column, a cut row, an extra field or a count that is not a number: one
+    DiagnoseError naming the file (and the line), where each was a traceback (UnicodeDecodeError, KeyError,
+    AttributeError, ValueError)."""
+    path = tmp_path / "episodes.csv"
+    rows = [
+        {"episode": 1, "env_steps": 100, "end_state": "10:0", "ss_target": "", "states_visited": 12},
+        {"episode": 2, "env_steps": 200, "end_state": "9:5", "ss_target": "11:8", "states_visited": 20},
+    ]
+
+    def refused() -> str:
+        with pytest.raises(DiagnoseError) as info:
+            exploration_before_first_goal(tmp_path, maze)
+        assert "\n" not in str(info.value)
+        return str(info.value)
+
+    path.write_bytes(b"\xa5\x00\xff" * 10)
+    assert refused().startswith(f"{path}: cannot read it (UnicodeDecodeError: ")
+    write_csv(path, [c for c in EPISODE_COLUMNS if c != "success"], rows)
+    assert refused() == f"{path}: lacks the columns success"
+    write_csv(path, EPISODE_COLUMNS, rows)
+    text = path.read_text().splitlines()
+    path.write_text("\n".join([*text[:2], ",".join(text[2].split(",")[:9])]) + "\n")  # the last row cut
+    assert refused() == f"{path} line 3: fewer fields than the header's {len(EPISODE_COLUMNS)} (a cut file?)"
+    path.write_text("\n".join([*text[:2], text[2] + ",extra"]) + "\n")
+    assert refused() == f"{path} line 3: more fields than the header's {len(EPISODE_COLUMNS)}"
+    write_csv(path, EPISODE_COLUMNS, [rows[0], {**rows[1], "env_steps": "abc"}])
+    assert refused() == f"{path} line 3: bad env_steps value 'abc' (expected a count)"
+
+
 def test_diagnose_run_errors(tmp_path):
     with pytest.raises(DiagnoseError, match="no checkpoint.pt"):
         diagnose_run(tmp_path)
@@ -482,3 +512,16 @@ def test_script_on_a_minigrid_doorkey_run(tmp_path, doorkey):
     assert "| 1-10 | 55 |" in out and "| 11-20 | 5 |" in out and "| step | state | cell |" in out
     assert f"visited {x['states_visited']} of the 62 states" in out
     assert (run / DIAGNOSIS_MD).read_text() == out
+
+
+def test_out_under_a_file_is_refused_before_the_diagnosis(tmp_path, capsys):
+    """--out names a folder to make: under a file it cannot be made (it was a NotADirectoryError traceback after
+    the whole diagnosis had run)."""
+    from ss_drl.analysis.diagnose import main
+
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    assert main([str(tmp_path), "--out", str(afile / "sub")]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"diagnose.py: error: --out {afile / 'sub'}: {afile} is not a directory"
+    ]

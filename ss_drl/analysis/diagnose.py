@@ -346,14 +346,28 @@ def exploration_before_first_goal(run_dir: Path, maze: Maze) -> dict:
     path = Path(run_dir) / EPISODES_FILE
     if not path.is_file():
         return {"note": f"no {EPISODES_FILE}"}
-    with path.open(newline="") as f:
-        rows = list(csv.DictReader(f))
-    if rows and ("end_state" not in rows[0] or "states_visited" not in rows[0]):
+    try:
+        with path.open(newline="") as f:
+            reader = csv.DictReader(f)
+            rows, header = list(reader), reader.fieldnames or []
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise DiagnoseError(f"{path}: cannot read it ({type(e).__name__}: {' '.join(str(e).split())})") from None
+    if rows and ("end_state" not in header or "states_visited" not in header):
         return {"note": f"{EPISODES_FILE} has no end_state/states_visited columns (a run from before they were logged)"}
+    missing = [c for c in ("env_steps", "success", "ss_target") if c not in header]
+    if missing:
+        raise DiagnoseError(f"{path}: lacks the columns {', '.join(missing)}")
     dist, labels = goal_distances(maze), label_distances(maze)
     goal_row, goal_col = maze.goal
     before, first_goal = [], None
     for line, row in enumerate(rows, start=2):
+        if None in row:  # csv.DictReader's key for fields beyond the header's
+            raise DiagnoseError(f"{path} line {line}: more fields than the header's {len(header)}")
+        if None in row.values():  # and its value for the fields a row lacks
+            raise DiagnoseError(f"{path} line {line}: fewer fields than the header's {len(header)} (a cut file?)")
+        for column in ("env_steps", "states_visited"):
+            if not row[column].isdigit():
+                raise DiagnoseError(f"{path} line {line}: bad {column} value {row[column]!r} (expected a count)")
         if row["success"] == "1":
             first_goal = int(row["env_steps"])
             break
@@ -613,8 +627,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.bucket_width < 1:
             raise DiagnoseError(f"--bucket-width must be >= 1 (got {args.bucket_width})")
-        if args.out is not None and args.out.exists() and not args.out.is_dir():
-            raise DiagnoseError(f"--out {args.out} is not a directory")
+        if args.out is not None:
+            # The folder is made after the diagnosis: the nearest part of the path that exists must be a folder.
+            existing = next(p for p in (args.out.absolute(), *args.out.absolute().parents) if p.exists())
+            if not existing.is_dir():
+                raise DiagnoseError(f"--out {args.out}: {existing} is not a directory")
         results = [diagnose_run(run_dir, args.bucket_width) for run_dir in args.run_dirs]
     except DiagnoseError as e:
         print(f"diagnose.py: error: {e}", file=sys.stderr)
