@@ -271,6 +271,27 @@ def test_incomplete_runs_are_skipped_with_one_warning_each(synth, loaded):
             load_run(d)
 
 
+def test_a_run_with_a_damaged_train_csv_is_skipped_before_any_figure(tmp_path):
+    """train.csv is read for the learning figure only, which came after the table and the other figures: a bad cell
+    there was a traceback (IncompleteRun) with figures half written. It is checked with the run's other files."""
+    from ss_drl.training.outputs import TRAIN_COLUMNS, TRAIN_FILE
+
+    d = tmp_path / "run"
+    _write_run(d, MAZE, "ss_her", 0, 100, 1.0, _episodes([1], [1]), _evals([(100, 20, 1)]))
+    row = dict.fromkeys(TRAIN_COLUMNS, "1")
+    with (d / TRAIN_FILE).open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=TRAIN_COLUMNS)
+        w.writeheader()
+        w.writerow({**row, "loss": "zz4353"})
+    _write_run(tmp_path / "good", MAZE, "ss_her", 1, 100, 1.0, _episodes([1], [1]), _evals([(100, 20, 1)]))
+    warnings: list[str] = []
+    assert [run.seed for run in load_runs([tmp_path], warn=warnings.append)] == [1]
+    (line,) = warnings
+    assert f"{TRAIN_FILE} line 2: bad loss value 'zz4353'" in line and "\n" not in line
+    with pytest.raises(IncompleteRun, match=f"{TRAIN_FILE} line 2: bad loss value"):
+        load_run(d)
+
+
 def test_groups_by_maze_and_method(loaded):
     groups = group_runs(loaded[0])
     assert list(groups) == [(OTHER_MAZE, "dqn"), (MAZE, "dqn"), (MAZE, "ss_her")]

@@ -241,6 +241,8 @@ def load_run(path: str | os.PathLike) -> Run:
         raise IncompleteRun(f"{SUMMARY_FILE} says {SK_COMPLETED}={json.dumps(summary[SK_COMPLETED])}")
     episodes = read_run_csv(path / EPISODES_FILE, EPISODE_COLUMNS, EPISODE_NUMERIC, EPISODE_OPTIONAL)
     evals = read_run_csv(path / EVAL_FILE, EVAL_COLUMNS, EVAL_NUMERIC, EVAL_OPTIONAL)
+    if (path / TRAIN_FILE).is_file():  # read again for the learning figure; a damaged one skips the run here, before
+        read_run_csv(path / TRAIN_FILE, TRAIN_COLUMNS, TRAIN_COLUMNS)  # any figure is drawn
     steps = evals[EV_ENV_STEPS]
     back = np.flatnonzero(np.diff(steps) < 0)
     if back.size:
