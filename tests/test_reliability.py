@@ -224,6 +224,8 @@ def test_check_resume_refuses_what_cannot_be_continued(tmp_path):
     assert refused({FORMAT_KEY: 1, "config": config}) == OLD_CHECKPOINT.format(path=path)
     assert "format 3, which this version (format 2) cannot read" in refused({FORMAT_KEY: 3, "config": config})
     assert f"{path} cannot be read" in refused(b"not a checkpoint")
+    # Read by torch but no checkpoint of any version: said so, not taken for one from before the renaming.
+    assert refused([1, 2]) == f"trainer.resume: {path} holds a list, not a checkpoint"
     assert "config 'seed' differs" in refused({**full, "config": {**config, "seed": 1}})
     # Of this format but not what the trainer wrote: refused here, before Hydra rewrites the run's .hydra/ files (it
     # was a KeyError or AttributeError traceback in the job, after them).

@@ -178,12 +178,16 @@ def resume_from(run_dir: Path, mmap: bool = False) -> Resumption:
 
 def written_before_rename(state) -> bool:
     """Whether a checkpoint was written under the old learner names (no :data:`FORMAT_KEY`, or an older format)."""
-    found = state.get(FORMAT_KEY) if isinstance(state, dict) else None
+    if not isinstance(state, dict):  # not a checkpoint of any version (format_problem says so)
+        return False
+    found = state.get(FORMAT_KEY)
     return found is None or (isinstance(found, int) and not isinstance(found, bool) and found < FORMAT)
 
 
 def format_problem(state, path: Path) -> str | None:
     """Why a checkpoint cannot be used by this version, its format being another (one line), or None when it can."""
+    if not isinstance(state, dict):  # torch read it, but it holds no checkpoint (a list, a tensor, ...)
+        return f"{path} holds a {type(state).__name__}, not a checkpoint"
     if written_before_rename(state):
         return f"{path} was written before the learners were renamed (docs/migration.md)"
     if state[FORMAT_KEY] != FORMAT:
