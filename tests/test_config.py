@@ -506,6 +506,25 @@ def test_batch_larger_than_buffer():
     validate_config(compose_cfg(overrides=["agent.batch_size=32", "agent.buffer_size=32"]))
 
 
+def test_a_buffer_smaller_than_one_collection_batch_is_refused():
+    """The HER buffer stores whole steps of the env copies (ceil(buffer_size / num_envs) of them), and each
+    collection batch is written whole (frames_per_batch // num_envs steps): accepted, a smaller buffer crashed at
+    the first write, after the run directory was made."""
+    with pytest.raises(ConfigError) as info:
+        validate_config(compose_cfg(overrides=["agent.batch_size=8", "agent.buffer_size=8"]))  # 8 steps < 16
+    assert str(info.value) == (
+        "agent.buffer_size: 8 holds 8 steps of the 1 env copies, fewer than one collection batch "
+        "(trainer.frames_per_batch 16: 16 steps)"
+    )
+    # 4 copies: 15 transitions are ceil(15 / 4) = 4 steps, and 16 frames are 4 steps: it fits; 13 (4 steps) too, and
+    # 12 (3 steps) does not.
+    for buffer in (15, 13):
+        validate_config(compose_cfg(overrides=["env.num_envs=4", "agent.batch_size=8", f"agent.buffer_size={buffer}"]))
+    with pytest.raises(ConfigError, match=r"^agent.buffer_size: 12 holds 3 steps of the 4 env copies"):
+        validate_config(compose_cfg(overrides=["env.num_envs=4", "agent.batch_size=8", "agent.buffer_size=12"]))
+    validate_config(compose_cfg(overrides=["agent.batch_size=8", "agent.buffer_size=16"]))  # one batch exactly
+
+
 # --- (c2) an override of a key the config does not have: one line before Hydra composes anything ---
 def _refusal(check):
     """``refused(*argv)``: the one-line ConfigError message of the command-line ``check`` on ``argv``."""

@@ -199,6 +199,14 @@ def _trainer_and_learner(cfg: DictConfig) -> None:
         buffer = _number(cfg, "agent.buffer_size", low=1, integer=True)
         if batch > buffer:
             raise ConfigError(f"agent.batch_size: {batch} is larger than agent.buffer_size ({buffer})")
+        # The HER buffer stores whole steps of the env copies, and one collection batch must fit in it.
+        copies = int(cfg.env.num_envs)
+        rows, batch_rows = -(-buffer // copies), max(1, int(cfg.trainer.frames_per_batch) // copies)
+        if batch_rows > rows:
+            raise ConfigError(
+                f"agent.buffer_size: {buffer} holds {rows} steps of the {copies} env copies, fewer than one collection "
+                f"batch (trainer.frames_per_batch {cfg.trainer.frames_per_batch}: {batch_rows} steps)"
+            )
         _number(cfg, "agent.embed_dim", low=1, integer=True)
         _number(cfg, "agent.target_update_interval", low=1, integer=True)
         _number(cfg, "agent.tau", low=0, high=1, low_open=True)
