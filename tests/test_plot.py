@@ -292,6 +292,20 @@ def test_a_run_with_a_damaged_train_csv_is_skipped_before_any_figure(tmp_path):
         load_run(d)
 
 
+def test_a_summary_whose_names_are_not_names_is_skipped(tmp_path):
+    """summary.json's maze, method and seed label the run's row: a maze that is an object (it became the row
+    label {'a': 1}), or a seed that is text, skips the run with one warning naming the key."""
+    for name, key, value in (("maze", "maze", {"a": 1}), ("method", "method", 3), ("seed", "seed", "0")):
+        d = tmp_path / name
+        _write_run(d, MAZE, "ss_her", 0, 100, 1.0, _episodes([1], [1]), _evals([(100, 20, 1)]))
+        summary = json.loads((d / "summary.json").read_text())
+        (d / "summary.json").write_text(json.dumps({**summary, key: value}))
+        with pytest.raises(IncompleteRun) as info:
+            load_run(d)
+        kind = "int" if key == "seed" else "str"
+        assert str(info.value) == f"summary.json: {key} is {json.dumps(value)}, not a {kind}"
+
+
 def test_groups_by_maze_and_method(loaded):
     groups = group_runs(loaded[0])
     assert list(groups) == [(OTHER_MAZE, "dqn"), (MAZE, "dqn"), (MAZE, "ss_her")]

@@ -239,6 +239,9 @@ def load_run(path: str | os.PathLike) -> Run:
         raise IncompleteRun(f"{SUMMARY_FILE} lacks {', '.join(missing)}")
     if summary[SK_COMPLETED] is not True:
         raise IncompleteRun(f"{SUMMARY_FILE} says {SK_COMPLETED}={json.dumps(summary[SK_COMPLETED])}")
+    for key, kind in ((SK_MAZE, str), (SK_METHOD, str), (SK_SEED, int)):  # they name the run's row and group
+        if not isinstance(summary[key], kind) or isinstance(summary[key], bool):
+            raise IncompleteRun(f"{SUMMARY_FILE}: {key} is {json.dumps(summary[key])}, not a {kind.__name__}")
     episodes = read_run_csv(path / EPISODES_FILE, EPISODE_COLUMNS, EPISODE_NUMERIC, EPISODE_OPTIONAL)
     evals = read_run_csv(path / EVAL_FILE, EVAL_COLUMNS, EVAL_NUMERIC, EVAL_OPTIONAL)
     if (path / TRAIN_FILE).is_file():  # read again for the learning figure; a damaged one skips the run here, before
