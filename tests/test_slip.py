@@ -282,3 +282,23 @@ def test_the_guided_phase_reaches_smart_start_under_slips():
     assert bool((ss.steps <= limits).all())
     assert float(ss.reached.double().mean()) >= 0.9, float(ss.reached.double().mean())
     assert bool((cells[ss.reached] == target[ss.reached]).all())
+
+
+def test_an_episode_cut_below_the_optimum_is_said_at_the_start(tmp_path, capsys):
+    """At slip 0.9 on easy_small (shortest path 19) the optimal policy needs far more than 19 steps on average: with
+    env.max_steps 20 most episodes end before G, and an evaluation's mean length (cut episodes count 20) lies below
+    the optimum. The run is allowed; it says so once. With slip 0 and the same cut it does not."""
+    from ss_drl.training.greedy import optimum
+    from ss_drl.training.trainer import Trainer
+
+    cfg = compose_cfg("+experiment=easy_small_tabular_ss", "env.slip=0.9", "env.max_steps=20")
+    trainer = Trainer(cfg, tmp_path / "slip")
+    expected = optimum(trainer.maze, 0.9)
+    assert trainer.optimal_length == expected > 20 * 3  # far beyond the cut
+    err = capsys.readouterr().err.splitlines()
+    assert err == [
+        f"ss-drl: warning: env.max_steps 20 is below the optimal policy's expected steps from S ({expected:g} at "
+        "slip 0.9): most episodes end before G"
+    ]
+    Trainer(compose_cfg("+experiment=easy_small_tabular_ss", "env.max_steps=20"), tmp_path / "deterministic")
+    assert capsys.readouterr().err == ""  # 19 <= 20

@@ -219,6 +219,13 @@ class Trainer:
         # on the true model); each evaluation rolls the greedy policy out eval_episodes times in the env's dynamics.
         self.slip = float(cfg.env.slip)
         self.optimal_length = optimum(self.maze, self.slip)
+        if self.optimal_length > cfg.env.max_steps:  # an evaluation's mean length (cut episodes count max_steps) can
+            # then lie below the optimum, and few episodes reach G: said once, since the run is allowed
+            print(
+                f"ss-drl: warning: env.max_steps {cfg.env.max_steps} is below the optimal policy's expected steps from "
+                f"S ({self.optimal_length:g} at slip {self.slip:g}): most episodes end before G",
+                file=sys.stderr,
+            )
         self.eval_episodes = evaluation_episodes(self.slip, cfg.trainer.eval_episodes)
         self.eval_generator = torch.Generator().manual_seed(int(cfg.seed) + 3_000_017)
         # The slips draw from the env's own generator, apart from the training RNG.
