@@ -75,12 +75,12 @@ class GoalDQNLoss(LossModule):
     What is TorchRL's: the :class:`~torchrl.objectives.LossModule` base and its ``convert_to_functional``, which
     makes the network's parameters ``value_network_params`` and a detached copy ``target_value_network_params``,
     so that ``HardUpdate``/``SoftUpdate``, ``parameters()`` and ``state_dict()`` are TorchRL's; and
-    ``distance_loss`` (``l2``/``smooth_l1``) with mean reduction. What is ours: :meth:`forward`. With no bound it
-    computes what ``torchrl.objectives.DQNLoss`` computes (``tests/test_dqn.py`` checks the loss and its gradients
-    against ``DQNLoss.forward``), but calls the networks directly: ``DQNLoss`` swaps functional parameters into a
-    ``QValueActor`` and builds tensordicts for each of its network passes, which on a CPU costs several times the
-    passes themselves (``scripts/benchmark.py --section train``). No ``td_error`` is written (the HER buffer
-    samples uniformly).
+    ``distance_loss`` (``l2``/``smooth_l1``) with mean reduction. What is ours: :meth:`forward`. With no bound and
+    no value-range clip it computes what ``torchrl.objectives.DQNLoss`` computes (``tests/test_dqn.py`` checks the
+    loss and its gradients against ``DQNLoss.forward``), but calls the networks directly: ``DQNLoss`` swaps
+    functional parameters into a ``QValueActor`` and builds tensordicts for each of its network passes, which on a
+    CPU costs several times the passes themselves (``scripts/benchmark.py --section train``). No ``td_error`` is
+    written (the HER buffer samples uniformly).
 
     The loss is the taken action's distance to its target, plus, where the target holds the other actions, each
     other action's distance to what it is held to (both from one call of :class:`TDTarget`). Both are averaged over

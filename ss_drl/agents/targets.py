@@ -9,14 +9,21 @@ For a sampled transition (s_t, a_t, g) whose window runs m steps (``n_steps``, s
 2. **Bounds** (:class:`Bound`): each gives a lower and/or an upper bound on the taken action's value, and, where it
    can, on every action of s_t. The target is then ``clamp(y, max(lower bounds), min(upper bounds))``: no target
    below the largest lower bound, none above the smallest upper bound (if they cross, the upper wins), and last
-   ``clamp(value_range)`` (``agent.clip_targets``: the values a policy can have). A bound's own value is computed
-   inside the bound: the distance floor with ``optimistic_floor`` takes the ceiling's steps where it knows no route
-   into G (:meth:`DistanceFloor.floor_steps`), so that its "lower bound" there is optimism, not a bound.
+   ``clamp(value_range)`` (``agent.clip_targets``: the values a policy can have), which wins over both. A bound's
+   own value is computed inside the bound: the distance floor with ``optimistic_floor`` takes the ceiling's steps
+   where it knows no route into G (:meth:`DistanceFloor.floor_steps`), so that its "lower bound" there is optimism,
+   not a bound.
 3. **The other actions** (:class:`ModelTargets`, and the all-action bounds): every action of s_t but the taken one
    is *held to* a value, the value its prediction is regressed toward: the one-step target through the successor
    the count model observed for it, or else its own (detached) prediction, clamped the same way into its all-action
    bounds and the value range. The loss adds each one's distance to that held value; where neither a model target
-   nor a bound moves it, the held value is the prediction itself, and that action adds nothing.
+   nor a bound moves it, the held value is the prediction itself clamped into the value range, so that action adds
+   nothing unless its prediction lies outside that range.
+
+Entering G ends every episode, whatever goal the agent pursues. For a relabeled goal g other than G, a window that
+ends there is not terminal (g was not reached), so its target bootstraps from Q'(G||g): no transition leaves G, so
+no sample trains that value, and it is the network's extrapolation. Counting it as terminal instead would give G, in
+the shortest-path form, the value of reaching every goal. This is a modelling choice, and every run so far made it.
 
 That order is the only one, and it is written once, in :meth:`TDTarget.__call__` (steps 1-3, with every bootstrap
 of the update in one call: one batched pass per network).
@@ -31,7 +38,9 @@ The bounds (switches in :class:`~ss_drl.agents.settings.DQNSettings`):
 bound                     gives                  assumes
 ========================  =====================  ==================================================================
 ``hindsight_bound``       lower, taken action    the stored episode, deterministic moves
-``n_step_max``            lower, taken action    the stored episode, deterministic moves
+``n_step_max``            lower, taken action    the stored episode, deterministic moves, and target-network
+                                                 values that do not overestimate (it bootstraps from them: a
+                                                 heuristic bound while they do)
 ``distance_floor``        lower, all actions*    the count model, deterministic moves (+ grid with four moves
                                                  with ``optimistic_floor``, which makes it the ceiling where no
                                                  route into G is known: optimism, not a bound)
@@ -221,8 +230,8 @@ class _GoalDistance:
         raise NotImplementedError
 
     def bound_for_g(self, sample: TensorDictBase, steps: torch.Tensor, other: float, all_actions: bool):
-        """(B, 1) ``path_value`` of ``steps`` at (s_t, a_t) for samples whose goal is the real goal G (not a
-        relabeled goal g), ``other`` elsewhere; with ``all_actions``, (B, A) for every action of s_t."""
+        """(B, 1) ``path_value`` of ``steps`` at (s_t, a_t) for samples whose goal is the real goal G (relabeled
+        or not: the test is on the goal), ``other`` elsewhere; with ``all_actions``, (B, A) for every action of s_t."""
         obs = sample.get("observation")
         if all_actions:
             k = steps.view(-1, self.counts.n_actions)[obs]
