@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import difflib
+import os
+import signal
 import sys
 import traceback
 from pathlib import Path
@@ -170,7 +172,7 @@ def _train(cfg: DictConfig):
     except ConfigError as exc:
         return _fail(f"config error: {exc}", code=2)
     except TrainingInterrupted as exc:
-        return _fail(str(exc), code=130)
+        return _fail(str(exc), code=128 + exc.signum, signum=exc.signum)
     except (FloatingPointError, FileNotFoundError, ValueError) as exc:
         return _fail(f"{type(exc).__name__}: {exc} (run directory: {run_dir})", code=1)
     except Exception:  # noqa: BLE001
@@ -191,14 +193,23 @@ def _train(cfg: DictConfig):
     return summary["final_eval_length"]
 
 
-def _fail(message: str, code: int):
+def _fail(message: str, code: int, signum: int | None = None):
     """One clear line on stderr. In a sweep the job is marked failed and the sweep goes on; alone, exit non-zero,
-    leaving no run directory behind when the run was refused before it wrote anything of its own."""
+    leaving no run directory behind when the run was refused before it wrote anything of its own.
+
+    A job stopped by ``signum`` (SIGINT/SIGTERM, its checkpoint written) stops its sweep too: its process then dies by
+    that signal, so that a sweep worker never starts the next job after the user stopped the sweep (Hydra's joblib
+    workers outlive a killed parent, and would otherwise run the queued jobs to the end)."""
     print(f"ss-drl: {message}", file=sys.stderr)
     if _is_multirun():
         out = Path(HydraConfig.get().runtime.output_dir)
         out.mkdir(parents=True, exist_ok=True)
         (out / FAILED_FILE).write_text(message + "\n")
+        if signum is not None:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
         return None
     _remove_hydra_files()
     sys.exit(code)

@@ -4,6 +4,8 @@ right after a checkpoint save (to resume it and compare its CSVs with an uninter
 from __future__ import annotations
 
 import csv
+import subprocess
+import time
 from pathlib import Path
 
 import pytest
@@ -100,3 +102,16 @@ def assert_resume_equals_uninterrupted(run: list[str], root: Path, saves: int = 
     for file in (EPISODES_FILE, EVAL_FILE, TRAIN_FILE):
         assert rows_without_wall_clock(cut / file) == rows_without_wall_clock(full / file), file
     return full
+
+
+def wait_for(condition, what: str, proc: subprocess.Popen, timeout_s: float) -> None:
+    """Poll ``condition`` until it holds; fail clearly if the child exits first or ``timeout_s`` passes."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if proc.poll() is not None:
+            pytest.fail(f"the training run exited (code {proc.returncode}) before {what}")
+        if time.monotonic() > deadline:
+            proc.kill()
+            proc.wait()
+            pytest.fail(f"no {what} within {timeout_s:.0f} s")
+        time.sleep(0.05)

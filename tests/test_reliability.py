@@ -7,12 +7,11 @@ import json
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 import torch
-from helpers import ROOT, compose_cfg
+from helpers import ROOT, compose_cfg, wait_for
 
 from ss_drl.training.outputs import CHECKPOINT_FILE, EPISODES_FILE, EVAL_FILE, SUMMARY_FILE, truncate_csv
 from ss_drl.training.trainer import Trainer
@@ -63,19 +62,6 @@ def _train_cmd(run_dir: Path, *extra: str) -> list[str]:
     ]
 
 
-def _wait_for(condition, what: str, proc: subprocess.Popen, timeout_s: float) -> None:
-    """Poll ``condition`` until it holds; fail clearly if the child exits first or ``timeout_s`` passes."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if proc.poll() is not None:
-            pytest.fail(f"the training run exited (code {proc.returncode}) before {what}")
-        if time.monotonic() > deadline:
-            proc.kill()
-            proc.wait()
-            pytest.fail(f"no {what} within {timeout_s:.0f} s")
-        time.sleep(0.05)
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("env", [(), ("env.slip=0.2",)], ids=["deterministic", "slip"])
 def test_sigterm_then_resume_equals_uninterrupted_run(tmp_path, env):
@@ -90,7 +76,7 @@ def test_sigterm_then_resume_equals_uninterrupted_run(tmp_path, env):
         proc = subprocess.Popen(_train_cmd(cut, *env), cwd=ROOT, stdout=subprocess.DEVNULL, stderr=err_file, text=True)
         # The first checkpoint (at 500 of 4000 env steps) is written atomically, after the CSV rows are flushed:
         # once it exists the run is past its start-up (signal handlers installed) with 3500 steps still to go.
-        _wait_for((cut / CHECKPOINT_FILE).exists, "first checkpoint", proc, timeout_s=300)
+        wait_for((cut / CHECKPOINT_FILE).exists, "first checkpoint", proc, timeout_s=300)
         assert proc.poll() is None, "the run ended before it could be interrupted"
         proc.send_signal(signal.SIGTERM)
         try:
@@ -100,7 +86,7 @@ def test_sigterm_then_resume_equals_uninterrupted_run(tmp_path, env):
             proc.wait()
             pytest.fail("the run did not stop within 120 s of SIGTERM")
     err = err_path.read_text()
-    assert proc.returncode != 0, "the run completed although it was sent SIGTERM"
+    assert proc.returncode == 128 + signal.SIGTERM, f"exit {proc.returncode}: not the shell's code for SIGTERM (143)"
     assert "SIGTERM" in err and "resume" in err, err
     assert "Traceback" not in err, err
     assert (cut / CHECKPOINT_FILE).exists()

@@ -6,18 +6,20 @@ from __future__ import annotations
 import ipaddress
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
 import threading
+import time
 import warnings
 from pathlib import Path
 
 import pytest
-from helpers import ROOT, TINY, compose_cfg
+from helpers import ROOT, TINY, compose_cfg, wait_for
 from omegaconf import OmegaConf
 
-from ss_drl.training.outputs import EPISODES_FILE, FAILED_FILE, SUMMARY_FILE
+from ss_drl.training.outputs import CHECKPOINT_FILE, EPISODES_FILE, FAILED_FILE, SUMMARY_FILE
 from ss_drl.training.trainer import Trainer
 
 
@@ -134,6 +136,52 @@ def test_resume_auto_restarts_a_sweep_and_a_new_sweep_never_overwrites_one(tmp_p
     assert last.startswith("ss-drl: config error: hydra.sweep.dir:") and "trainer.resume" in last, last
     after = {p.relative_to(sweep_dir).as_posix(): p.read_bytes() for p in sweep_dir.rglob("*") if p.is_file()}
     assert after == before, "a refused sweep changed the sweep directory"
+
+
+def session_processes(sid: int) -> list[int]:
+    """The live processes of session ``sid`` (field 6 of /proc/<pid>/stat), zombies aside."""
+    pids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # the process ended while we looked
+            continue
+        if int(fields[3]) == sid and fields[0] != "Z":
+            pids.append(int(stat.parent.name))
+    return pids
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads sessions from /proc")
+def test_sigterm_stops_a_joblib_sweep_without_leaving_workers_or_starting_jobs(tmp_path):
+    """SIGTERM to a sweep's process group (a batch scheduler, ``kill -- -PGID``): each running job writes its checkpoint
+    and FAILED, and then no process is left. Before the fix, the joblib workers outlived the killed parent and ran the
+    queued job to its end."""
+    sweep_dir = tmp_path / "sweep"
+    budgetless = [o for o in TINY if not o.startswith("trainer.total_env_steps=")]
+    cmd = [sys.executable, "scripts/train.py", "-m", "+experiment=easy_small_dqn_her", "seed=0,1,2", *budgetless,
+           "trainer.total_env_steps=200000", "trainer.checkpoint_interval=200", "env.max_steps=50",
+           "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={sweep_dir}"]  # fmt: skip
+    jobs = [sweep_dir / f"{i}_easy_small_dqn_her_seed{i}" for i in range(3)]
+    with (tmp_path / "out").open("w") as out:  # files, not pipes: a child blocked on a full pipe never checkpoints
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+        try:
+            both = lambda: all((job / CHECKPOINT_FILE).exists() for job in jobs[:2])  # noqa: E731
+            wait_for(both, "a checkpoint in both running jobs", proc, timeout_s=300)
+            os.killpg(proc.pid, signal.SIGTERM)
+            proc.wait(timeout=120)
+            deadline = time.monotonic() + 120
+            while session_processes(proc.pid) and time.monotonic() < deadline:
+                time.sleep(0.5)
+            left = session_processes(proc.pid)
+        finally:
+            for pid in session_processes(proc.pid):
+                os.kill(pid, signal.SIGKILL)
+    assert not left, f"processes {left} still ran 120 s after the sweep was sent SIGTERM"
+    for job in jobs[:2]:
+        assert "SIGTERM received: checkpoint written" in (job / FAILED_FILE).read_text(), job.name
+        assert (job / CHECKPOINT_FILE).exists() and not (job / SUMMARY_FILE).exists(), job.name
+    assert not (jobs[2] / SUMMARY_FILE).exists(), "the queued job ran after the sweep was stopped"
 
 
 @pytest.mark.slow
@@ -376,3 +424,41 @@ def test_wandb_groups_runs_by_what_they_ran(tmp_path, monkeypatch, overrides, gr
     (call,) = calls
     assert (call["group"], call["job_type"]) == (group, label)
     assert call["name"] == f"{cfg.experiment}-seed0"
+
+
+@pytest.mark.parametrize(
+    ("env_mode", "overrides", "mode"),
+    [
+        (None, [], "offline"),
+        ("disabled", [], "disabled"),
+        ("online", [], "online"),
+        ("disabled", ["logger.mode=offline"], "offline"),
+    ],
+)
+def test_wandb_mode_is_wandb_mode_from_the_environment_unless_logger_mode_is_set(
+    tmp_path, monkeypatch, env_mode, overrides, mode
+):
+    """``logger=wandb`` takes its mode from ``$WANDB_MODE``, else offline; ``logger.mode`` on the command line wins.
+    (A bug, fixed: the config's offline was passed to wandb.init and silently beat ``WANDB_MODE=disabled``.)"""
+    import wandb
+
+    from ss_drl.training.outputs import RunLogger
+
+    if env_mode is None:
+        monkeypatch.delenv("WANDB_MODE", raising=False)
+    else:
+        monkeypatch.setenv("WANDB_MODE", env_mode)
+    calls = []
+
+    def init(**kwargs):
+        calls.append(kwargs)
+        raise RuntimeError("recorded")
+
+    monkeypatch.setattr(wandb, "init", init)
+    cfg = compose_cfg("+experiment=easy_small_ss_her", "logger=wandb", *overrides)
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        RunLogger(tmp_path, cfg, resolved).close()
+    assert [call["mode"] for call in calls] == ([] if mode == "disabled" else [mode])
+    assert resolved["logger"]["mode"] == mode

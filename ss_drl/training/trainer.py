@@ -49,7 +49,11 @@ from ss_drl.training.outputs import (
 
 
 class TrainingInterrupted(Exception):
-    """SIGINT/SIGTERM arrived; a final checkpoint was written."""
+    """SIGINT/SIGTERM arrived; a final checkpoint was written. ``signum`` is the signal."""
+
+    def __init__(self, message: str, signum: int):
+        super().__init__(message)
+        self.signum = signum
 
 
 @dataclasses.dataclass
@@ -313,8 +317,9 @@ class Trainer:
                 if self._stop_signal is not None:
                     self.save_checkpoint()
                     raise TrainingInterrupted(
-                        f"{self._stop_signal} received: checkpoint written at {collector.env_steps} env steps "
-                        f"in {self.run_dir}; resume with trainer.resume=true"
+                        f"{self._stop_signal.name} received: checkpoint written at {collector.env_steps} env steps "
+                        f"in {self.run_dir}; resume with trainer.resume=true",
+                        self._stop_signal,
                     )
             if update_log.rows:
                 self._log_updates(update_log)
@@ -549,7 +554,7 @@ class Trainer:
 
     def _install_signal_handlers(self):
         def handler(signum, frame):
-            self._stop_signal = signal.Signals(signum).name
+            self._stop_signal = signal.Signals(signum)
 
         previous = {}
         for sig in (signal.SIGINT, signal.SIGTERM):
