@@ -23,6 +23,7 @@ from ss_drl.analysis.diagnose import (
     diagnose_agent,
     diagnose_run,
     exploration_before_first_goal,
+    exploration_lines,
     format_markdown,
     training_data,
     value_gamma,
@@ -266,6 +267,30 @@ def test_exploration_before_the_first_goal_by_hand(tmp_path, maze):
     old = [c for c in EPISODE_COLUMNS if c not in ("end_state", "states_visited")]
     write_csv(tmp_path / "episodes.csv", old, rows)
     assert "no end_state/states_visited columns" in exploration_before_first_goal(tmp_path, maze)["note"]
+
+
+def test_exploration_report_reads_right_when_g_is_never_reached_or_reached_at_once(tmp_path, maze):
+    """The report's sentence for each case (a bug, fixed: "G never reached env steps", and "the 0 training episodes
+    before it (0 env steps) visited 0 of the 72 free cells" when the first episode reached G)."""
+    rows = [
+        {"episode": 1, "env_steps": 100, "end_state": "10:0", "ss_target": "", "states_visited": 12},
+        {"episode": 2, "env_steps": 200, "end_state": "9:5", "ss_target": "11:8", "states_visited": 20},
+        {"episode": 3, "env_steps": 240, "end_state": "1:1", "ss_target": "2:2", "states_visited": 26, "success": 1},
+    ]
+
+    def report(rows) -> list[str]:
+        write_csv(tmp_path / "episodes.csv", EPISODE_COLUMNS, rows)
+        return exploration_lines(exploration_before_first_goal(tmp_path, maze), task=False)
+
+    assert report(rows)[0] == (
+        "- G first reached at 240 env steps: the 2 training episodes before it (200 env steps) visited 20 of the 72 "
+        "free cells."
+    )
+    assert report(rows[:2])[0] == (
+        "- G never reached: the 2 training episodes (200 env steps) visited 20 of the 72 free cells."
+    )
+    lines = report([{**rows[2], "episode": 1, "env_steps": 40}])
+    assert lines == ["- G first reached at 40 env steps, in the first training episode: no episode before it."]
 
 
 def test_a_damaged_episodes_csv_is_named_with_its_line(tmp_path, maze):

@@ -587,27 +587,34 @@ def format_markdown(d: dict) -> str:
             f"- Share of episodes with a Smart Start guided phase: {_f(t['smart_start_share'])} overall, "
             f"{_f(t['smart_start_share_last_quarter'])} in the last quarter."
         )
-    x = d["exploration"]
-    lines += ["", "### Exploration before the first goal", ""]
-    if "note" in x:
-        lines.append(f"- {x['note']}.")
-    else:
-        reached = (
-            "never reached" if x["first_goal_env_step"] is None else f"first reached at {x['first_goal_env_step']}"
-        )
-        ends = (
-            "The states they end in (cell and direction) lie a median of at least"
-            if task
-            else "The cells they end in lie a median"
-        )
-        lines += [
-            f"- G {reached} env steps; the {x['episodes']} training episodes before it ({x['env_steps']} env steps) "
-            f"visited {x['states_visited']} of the {x['free_states']} {'states' if task else 'free cells'}.",
-            f"- {ends} {_f(x['end_true_distance_median'], 'g')} steps from G "
-            f"({_f(x['end_manhattan_distance_median'], 'g')} in Manhattan distance); their smart start states a "
-            f"median {_f(x['ss_target_true_distance_median'], 'g')} steps.",
-        ]
+    lines += ["", "### Exploration before the first goal", "", *exploration_lines(d["exploration"], task)]
     return "\n".join(lines) + "\n"
+
+
+def exploration_lines(x: dict, task: bool) -> list[str]:
+    """The report's lines on :func:`exploration_before_first_goal`'s ``x`` (``task``: a MiniGrid task's states)."""
+    if "note" in x:
+        return [f"- {x['note']}."]
+    first, n, unit = x["first_goal_env_step"], x["episodes"], "states" if task else "free cells"
+    if first is not None and n == 0:
+        return [f"- G first reached at {first} env steps, in the first training episode: no episode before it."]
+    if first is None:
+        head = f"- G never reached: the {n} training episodes ({x['env_steps']} env steps)"
+    else:
+        head = (
+            f"- G first reached at {first} env steps: the {n} training episodes before it ({x['env_steps']} env steps)"
+        )
+    ends = (
+        "The states they end in (cell and direction) lie a median of at least"
+        if task
+        else "The cells they end in lie a median"
+    )
+    return [
+        f"{head} visited {x['states_visited']} of the {x['free_states']} {unit}.",
+        f"- {ends} {_f(x['end_true_distance_median'], 'g')} steps from G "
+        f"({_f(x['end_manhattan_distance_median'], 'g')} in Manhattan distance); their smart start states a "
+        f"median {_f(x['ss_target_true_distance_median'], 'g')} steps.",
+    ]
 
 
 def build_parser() -> argparse.ArgumentParser:
