@@ -35,6 +35,12 @@ from ss_drl.envs.maze import goal_reward
 STRATEGIES = ("future", "final", "episode", "random")
 
 
+def storage_rows(capacity: int, num_envs: int) -> int:
+    """The steps of ``num_envs`` env copies that a buffer of ``capacity`` transitions holds: each copy owns one column
+    of ``ceil(capacity / num_envs)`` rows."""
+    return -(-int(capacity) // int(num_envs))
+
+
 class HindsightReplayBuffer(TensorDictReplayBuffer):
     """A TorchRL replay buffer of goal-conditioned maze transitions with HER relabeling at sample time.
 
@@ -78,7 +84,7 @@ class HindsightReplayBuffer(TensorDictReplayBuffer):
         if k < 0:
             raise ValueError(f"HER k must be >= 0 (got {k})")
         self.num_envs = int(num_envs)
-        self.rows = -(-int(capacity) // self.num_envs)
+        self.rows = storage_rows(capacity, self.num_envs)
         super().__init__(
             storage=LazyTensorStorage(self.rows * self.num_envs),
             sampler=RandomSampler(),

@@ -13,7 +13,7 @@ from omegaconf import DictConfig
 from ss_drl.agents.settings import DQNSettings
 from ss_drl.agents.targets import environment_assumptions, resolve_bounds
 from ss_drl.envs.maze import PRESETS, MazeError, load_maze
-from ss_drl.her import STRATEGIES
+from ss_drl.her import STRATEGIES, storage_rows
 from ss_drl.smart_start.controller import SmartStart
 
 
@@ -201,7 +201,7 @@ def _trainer_and_learner(cfg: DictConfig) -> None:
             raise ConfigError(f"agent.batch_size: {batch} is larger than agent.buffer_size ({buffer})")
         # The HER buffer stores whole steps of the env copies, and one collection batch must fit in it.
         copies = int(cfg.env.num_envs)
-        rows, batch_rows = -(-buffer // copies), max(1, int(cfg.trainer.frames_per_batch) // copies)
+        rows, batch_rows = storage_rows(buffer, copies), max(1, int(cfg.trainer.frames_per_batch) // copies)
         if batch_rows > rows:
             raise ConfigError(
                 f"agent.buffer_size: {buffer} holds {rows} steps of the {copies} env copies, fewer than one collection "
