@@ -391,6 +391,26 @@ def test_failing_wandb_init_falls_back_to_csv(tmp_path, monkeypatch):
     assert [w for w in caught if "W&B is off" in str(w.message)]
 
 
+def wandb_init_calls(tmp_path, monkeypatch, cfg) -> list[dict]:
+    """The keyword arguments of each ``wandb.init`` call a RunLogger of ``cfg`` makes (the recording init then fails,
+    so no W&B run starts)."""
+    import wandb
+
+    from ss_drl.training.outputs import RunLogger
+
+    calls = []
+
+    def init(**kwargs):
+        calls.append(kwargs)
+        raise RuntimeError("recorded")
+
+    monkeypatch.setattr(wandb, "init", init)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        RunLogger(tmp_path, cfg, OmegaConf.to_container(cfg, resolve=True)).close()
+    return calls
+
+
 @pytest.mark.parametrize(
     ("overrides", "group", "label"),
     [
@@ -405,23 +425,8 @@ def test_wandb_groups_runs_by_what_they_ran(tmp_path, monkeypatch, overrides, gr
     """The W&B group is the experiment name when it names the method that ran, else the experiment name with the
     method label (an agent override never files one learner's runs under the other's name), and the job type the
     method label (ss_drl/methods.py); logger.group, when set, is the group."""
-    import wandb
-
-    from ss_drl.training.outputs import RunLogger
-
-    calls = []
-
-    def init(**kwargs):
-        calls.append(kwargs)
-        raise RuntimeError("recorded")
-
-    monkeypatch.setattr(wandb, "init", init)
     cfg = compose_cfg(*overrides, "logger=wandb", "logger.mode=offline")
-    resolved = OmegaConf.to_container(cfg, resolve=True)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        RunLogger(tmp_path, cfg, resolved).close()
-    (call,) = calls
+    (call,) = wandb_init_calls(tmp_path, monkeypatch, cfg)
     assert (call["group"], call["job_type"]) == (group, label)
     assert call["name"] == f"{cfg.experiment}-seed0"
 
@@ -440,25 +445,11 @@ def test_wandb_mode_is_wandb_mode_from_the_environment_unless_logger_mode_is_set
 ):
     """``logger=wandb`` takes its mode from ``$WANDB_MODE``, else offline; ``logger.mode`` on the command line wins.
     (A bug, fixed: the config's offline was passed to wandb.init and silently beat ``WANDB_MODE=disabled``.)"""
-    import wandb
-
-    from ss_drl.training.outputs import RunLogger
-
     if env_mode is None:
         monkeypatch.delenv("WANDB_MODE", raising=False)
     else:
         monkeypatch.setenv("WANDB_MODE", env_mode)
-    calls = []
-
-    def init(**kwargs):
-        calls.append(kwargs)
-        raise RuntimeError("recorded")
-
-    monkeypatch.setattr(wandb, "init", init)
     cfg = compose_cfg("+experiment=easy_small_ss_her", "logger=wandb", *overrides)
-    resolved = OmegaConf.to_container(cfg, resolve=True)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        RunLogger(tmp_path, cfg, resolved).close()
+    calls = wandb_init_calls(tmp_path, monkeypatch, cfg)
     assert [call["mode"] for call in calls] == ([] if mode == "disabled" else [mode])
-    assert resolved["logger"]["mode"] == mode
+    assert OmegaConf.to_container(cfg, resolve=True)["logger"]["mode"] == mode
