@@ -408,6 +408,17 @@ def test_optimistic_floor_needs_both_distance_bounds():
     assert_config_error(compose_cfg(overrides=["agent.optimistic_floor=on"]), "agent.optimistic_floor", "on")
 
 
+@pytest.mark.parametrize("key", ["agent.distance_floor", "agent.distance_ceiling"])
+def test_turning_a_bound_off_under_slips_is_not_refused_for_a_companion_the_slips_turn_off(key):
+    """Under slips every count-model bound is turned off when the run starts, so a user turning one of them off on
+    the command line must not be refused because ``optimistic_floor`` (on by default, off under slips) needs it.
+    It was: the combination checks read the config as given, not the bounds in force. With deterministic moves the
+    same override is still refused, since there the optimistic floor stays on."""
+    validate_config(compose_cfg("easy_ss_her_bounded", ["env.slip=0.1", f"{key}=false"]))
+    with pytest.raises(ConfigError, match=r"^agent.optimistic_floor: needs agent.distance_floor and"):
+        validate_config(compose_cfg("easy_ss_her_bounded", [f"{key}=false"]))
+
+
 def test_unknown_encoder():
     message = assert_config_error(compose_cfg(overrides=["agent.encoder=pixels"]), "agent.encoder", "pixels")
     for allowed in ("embedding", "coords", "hybrid"):

@@ -191,7 +191,11 @@ def _trainer_and_learner(cfg: DictConfig) -> None:
             settings = DQNSettings.from_config(cfg.agent)
             # A bound the user turned on that this environment cannot support is refused here; one that comes with
             # the learner's defaults is turned off when the run starts (ss_drl.training.trainer.dqn_settings).
-            resolve_bounds(settings, environment_assumptions(cfg.env), explicit=_command_line_keys(cfg, "agent."))
+            # The combinations below are checked on the bounds that will be in force, so that turning one off on
+            # the command line is not refused for a companion that this environment turns off anyway.
+            agent, _ = resolve_bounds(
+                settings, environment_assumptions(cfg.env), explicit=_command_line_keys(cfg, "agent.")
+            )
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         _number(cfg, "agent.lr", low=0, low_open=True)
@@ -216,7 +220,6 @@ def _trainer_and_learner(cfg: DictConfig) -> None:
         _number(cfg, "agent.grad_clip", low=0)
         _number(cfg, "agent.step_cost", low=0)
         _number(cfg, "agent.n_step", low=1, integer=True)
-        agent = cfg.agent
         if agent.bound_all_actions and not (agent.distance_floor or agent.distance_ceiling):
             raise ConfigError("agent.bound_all_actions: needs agent.distance_floor or agent.distance_ceiling")
         if agent.optimistic_floor and not (agent.distance_floor and agent.distance_ceiling):
