@@ -618,8 +618,9 @@ def _leaf_keys(node, prefix: str = "") -> set[str]:
 
 
 def test_the_readme_configuration_reference_names_every_key():
-    """Every key of every learner's, logger's and world's composed config has its line in the README's Configuration
-    table (a key added to a YAML without a line there fails here), and the table names no key that does not exist."""
+    """Every key of every learner's, logger's and world's composed config has its own line in the README's
+    Configuration table (a key added to a YAML without a line there fails here; a row naming two keys fails too), and
+    the table names no key that does not exist."""
     keys = set()
     for overrides in (
         ["+experiment=easy_ss_her"], ["+experiment=easy_ss_her_bounded"], ["+experiment=easy_tabular_ss"],
@@ -629,8 +630,9 @@ def test_the_readme_configuration_reference_names_every_key():
     readme = (ROOT / "README.md").read_text()
     section = readme[readme.index("## Configuration\n") : readme.index("## Outputs\n")]
     table = [line for line in section.splitlines() if line.startswith("| `")]
-    named = {
-        k for line in table for k in re.findall(r"`([a-z_]+(?:\.[a-z_]+)+|seed|experiment)`", line.split(" | ")[0])
-    }
+    per_row = [re.findall(r"`([a-z_]+(?:\.[a-z_]+)+|seed|experiment)`", line.split(" | ")[0]) for line in table]
+    assert [row for row in per_row if len(row) != 1] == [], "one line per key"
+    named = {row[0] for row in per_row}
+    assert len(named) == len(per_row), "a key has two lines"
     assert sorted(keys - named) == []
     assert sorted(named - keys) == []
