@@ -258,6 +258,20 @@ def test_import_registers_ids():
     assert out.stdout.strip() == str(SHORTEST["easy_small"])
 
 
+def test_gymnasium_make_with_the_module_prefix_needs_no_import():
+    """The README's ``gymnasium.make("ss_drl:SSDRL/Easy-v0")`` works in a fresh interpreter that never imported ss_drl
+    (gymnasium imports the module before the lookup); without the prefix the id is unknown until ``import ss_drl``."""
+    code = (
+        "import sys, gymnasium\n"
+        "assert 'ss_drl' not in sys.modules\n"
+        "env = gymnasium.make('ss_drl:SSDRL/Easy-v0')\n"
+        "print(env.unwrapped.maze.shortest_path_length)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == str(SHORTEST["easy"])
+
+
 @pytest.mark.parametrize("env_id", [*ENV_IDS, "SSDRL/Maze-v0"])
 def test_registered_id_makes_with_max_steps(env_id, tmp_path):
     kwargs = {"layout": str(write_maze(tmp_path))} if env_id == "SSDRL/Maze-v0" else {}
