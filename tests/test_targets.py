@@ -363,8 +363,9 @@ def test_the_composed_target_equals_the_hand_composed_clamp_where_every_bound_bi
 def test_fused_passes_give_the_separate_passes_targets(fused):
     """One bootstrap call for every state (the window's end, the k-step maximum's states, the model targets'
     successors) against two (the successors on their own, as at 7ac5009): the same targets and held values, to float
-    tolerance, on the samples where every bound binds, with a real network's double-DQN bootstrap; and the fused
-    target makes one call where the separate one makes two."""
+    tolerance, on the samples where every bound binds; and the fused target makes one call where the separate one
+    makes two. The bootstrap is a real network's double-DQN value, scaled down and added to the hand values ``V``, so
+    that the floats differ from the hand test's while every bound still decides the target it decides there."""
     torch.manual_seed(0)
     online, target_net = GoalQNetwork(CORRIDOR, "hybrid", 8, (16, 16)), GoalQNetwork(CORRIDOR, "hybrid", 8, (16, 16))
     calls = []
@@ -372,9 +373,10 @@ def test_fused_passes_give_the_separate_passes_targets(fused):
     def bootstrap(states, goals):
         calls.append(states.numel())
         with torch.no_grad():
-            return target_net(states, goals).gather(-1, online(states, goals).argmax(-1, keepdim=True))
+            q = target_net(states, goals).gather(-1, online(states, goals).argmax(-1, keepdim=True))
+        return V[states].unsqueeze(-1) + 1e-3 * q
 
-    q_all = torch.randn(6, 4)
+    q_all = -5.0 + 1e-3 * torch.randn(6, 4)
     one, batch = every_bound_binds(fused)
     other, _ = every_bound_binds(not fused)
     calls.clear()
@@ -383,6 +385,9 @@ def test_fused_passes_give_the_separate_passes_targets(fused):
     want = other(batch, q_all, bootstrap)
     torch.testing.assert_close(got[0], want[0])
     torch.testing.assert_close(got[1], want[1])
+    # Every bound binds, as in the hand-composed test: the taken actions' targets are the hand values up to the noise.
+    hand = torch.tensor([-1.0, -3.0, -4.0, -1.0, 0.0, -20.0])
+    torch.testing.assert_close(got[0].squeeze(-1), hand, atol=0.01, rtol=0)
 
 
 def one_step_from_0_to_1() -> TensorDict:
