@@ -18,13 +18,13 @@ pytest.importorskip("minigrid")
 from ss_drl.agents.network import GoalQNetwork  # noqa: E402
 from ss_drl.agents.targets import DistanceFloor, ModelTargets, Scale  # noqa: E402
 from ss_drl.envs.batched import BatchedMazeEnv  # noqa: E402
-from ss_drl.envs.minigrid import ACTIONS, MiniGridError, MiniGridTask  # noqa: E402
+from ss_drl.envs.minigrid import ACTIONS, MiniGridError, MiniGridTask, minigrid_task  # noqa: E402
 from ss_drl.evaluate import main as evaluate_main  # noqa: E402
 from ss_drl.her import HindsightReplayBuffer  # noqa: E402
 from ss_drl.smart_start.counts import CountModel  # noqa: E402
 from ss_drl.training.config import ConfigError, validate_config  # noqa: E402
 from ss_drl.training.outputs import EPISODES_FILE, EVAL_FILE, SUMMARY_FILE  # noqa: E402
-from ss_drl.training.trainer import Trainer, dqn_settings  # noqa: E402
+from ss_drl.training.trainer import Trainer, dqn_settings, make_maze  # noqa: E402
 
 DOORKEY = "MiniGrid-DoorKey-5x5-v0"
 FOURROOMS = "MiniGrid-FourRooms-v0"
@@ -101,6 +101,31 @@ def test_layouts_differ_by_seed_and_a_state_cap_refuses_in_one_line():
     with pytest.raises(MiniGridError, match=r"^env\.max_states: .* more than 10 reachable states") as info:
         MiniGridTask(DOORKEY, 0, max_states=10)
     assert "\n" not in str(info.value)
+
+
+def test_the_config_check_and_the_trainer_share_one_state_graph_search(monkeypatch):
+    """The config check builds the task (to refuse an unsupported one before the run) and the trainer builds it
+    again: one search of the state graph between them, not one each (on LockedRoom, 111,872 states, a run of 300
+    env steps spent most of its 40 s in three searches). A refused task is searched again, not kept."""
+    searches = []
+    enumerate_states = MiniGridTask._enumerate
+    monkeypatch.setattr(
+        MiniGridTask, "_enumerate", lambda self, start: searches.append(1) or enumerate_states(self, start)
+    )
+    minigrid_task.cache_clear()
+    cfg = compose_cfg("+experiment=minigrid_ss_her", f"env.id={DOORKEY}", "env.layout_seed=2")
+    validate_config(cfg)
+    task = make_maze(cfg.env)
+    assert len(searches) == 1
+    assert make_maze(cfg.env) is task and task.layout_seed == 2
+    assert (
+        make_maze(compose_cfg("+experiment=minigrid_ss_her", f"env.id={DOORKEY}", "env.layout_seed=3").env) is not task
+    )
+    assert len(searches) == 2
+    for _ in range(2):
+        with pytest.raises(MiniGridError, match=r"^env\.max_states"):
+            minigrid_task(DOORKEY, 2, 10)
+    assert len(searches) == 4
 
 
 @pytest.mark.parametrize(

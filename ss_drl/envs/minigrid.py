@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 from collections import deque
 
 import numpy as np
@@ -321,6 +322,14 @@ class MiniGridTask:
     def __repr__(self) -> str:
         size = f"{self.height}x{self.width}"
         return f"MiniGridTask({self.name!r}, layout {self.layout_seed}, {size}, {self.n_states} states)"
+
+
+@functools.lru_cache(maxsize=2)
+def minigrid_task(env_id: str, layout_seed: int = 0, max_states: int = 100_000) -> MiniGridTask:
+    """The :class:`MiniGridTask` of (id, layout seed, cap), built once per process: the config check, which builds
+    the task to refuse an unsupported one before the run, and the trainer then share one state-graph search (on a
+    large task such as LockedRoom, over 100k states, each search takes seconds). A refused task is not kept."""
+    return MiniGridTask(env_id, int(layout_seed), int(max_states))
 
 
 def _no_observation():

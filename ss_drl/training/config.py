@@ -126,7 +126,7 @@ def validate_config(cfg: DictConfig) -> None:
 def _minigrid_env(cfg: DictConfig) -> None:
     """A MiniGrid task: its id, layout seed and state cap, and the task itself (built here, so that an unsupported
     task or one with too many states is refused before the run starts)."""
-    from ss_drl.envs.minigrid import MiniGridError, MiniGridTask
+    from ss_drl.envs.minigrid import MiniGridError, minigrid_task
 
     if not isinstance(cfg.env.id, str):
         raise ConfigError(f"env.id: expected a MiniGrid id such as MiniGrid-FourRooms-v0, got {cfg.env.id!r}")
@@ -135,7 +135,7 @@ def _minigrid_env(cfg: DictConfig) -> None:
     if cfg.env.slip > 0:
         raise ConfigError(f"env.slip: {cfg.env.slip!r} is out of range for a MiniGrid task (allowed: 0)")
     try:
-        MiniGridTask(cfg.env.id, int(seed), int(cap))
+        minigrid_task(cfg.env.id, int(seed), int(cap))
     except MiniGridError as exc:
         raise ConfigError(str(exc)) from None
 

@@ -118,9 +118,9 @@ def make_maze(env_cfg):
     """The world of an ``env`` config node: a MiniGrid task with a fixed layout when ``env.id`` is set
     (:class:`~ss_drl.envs.minigrid.MiniGridTask`), else the maze of ``env.layout`` or ``env.preset``."""
     if env_cfg.get("id"):
-        from ss_drl.envs.minigrid import MiniGridTask
+        from ss_drl.envs.minigrid import minigrid_task
 
-        return MiniGridTask(env_cfg.id, int(env_cfg.layout_seed), int(env_cfg.max_states))
+        return minigrid_task(env_cfg.id, int(env_cfg.layout_seed), int(env_cfg.max_states))
     return load_maze(env_cfg.layout if env_cfg.layout else env_cfg.preset)
 
 
