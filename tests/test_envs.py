@@ -244,8 +244,13 @@ def test_env_ids_cover_presets():
     assert all(env_id.startswith("SSDRL/") and env_id.endswith("-v0") for env_id in ENV_IDS)
 
 
+def fresh_python(code: str) -> subprocess.CompletedProcess:
+    """``code`` run in a fresh interpreter (nothing imported yet) from the repository root."""
+    return subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+
+
 def test_import_registers_ids():
-    code = (
+    out = fresh_python(
         "import gymnasium, ss_drl, ss_drl.envs as e\n"
         "ids = [*e.ENV_IDS, 'SSDRL/Maze-v0']\n"
         "missing = [i for i in ids if i not in gymnasium.registry]\n"
@@ -253,7 +258,6 @@ def test_import_registers_ids():
         "env = gymnasium.make('SSDRL/EasySmall-v0', max_steps=3)\n"
         "print(env.unwrapped.maze.shortest_path_length)\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == str(SHORTEST["easy_small"])
 
@@ -261,15 +265,15 @@ def test_import_registers_ids():
 def test_gymnasium_make_with_the_module_prefix_needs_no_import():
     """The README's ``gymnasium.make("ss_drl:SSDRL/Easy-v0")`` works in a fresh interpreter that never imported ss_drl
     (gymnasium imports the module before the lookup); without the prefix the id is unknown until ``import ss_drl``."""
-    code = (
+    out = fresh_python(
         "import sys, gymnasium\n"
         "assert 'ss_drl' not in sys.modules\n"
-        "env = gymnasium.make('ss_drl:SSDRL/Easy-v0')\n"
-        "print(env.unwrapped.maze.shortest_path_length)\n"
+        "print(gymnasium.make('ss_drl:SSDRL/Easy-v0').unwrapped.maze.shortest_path_length)\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == str(SHORTEST["easy"])
+    out = fresh_python("import gymnasium\ngymnasium.make('SSDRL/Easy-v0')\n")
+    assert out.returncode != 0 and "SSDRL" in out.stderr
 
 
 @pytest.mark.parametrize("env_id", [*ENV_IDS, "SSDRL/Maze-v0"])
