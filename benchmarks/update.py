@@ -16,6 +16,10 @@ The rows, named by the stages of ``docs/ablations.md`` (the lab notebook is ``do
   work per update (:data:`PER_ROW_OPTIONS`: the factored bootstrap, successors by the target network's max, sparse
   per-cell tables), each off by default.
 
+A second table asks why the update makes three network passes and not two: the online network's pass over the
+batch, which the loss differentiates, against the one pass over batch and bootstrap states together that would
+replace it and the online bootstrap pass (:func:`bench_online_passes`).
+
 The learners' rows are composed from the ``agent`` group (:data:`LEARNERS`), so they follow ``conf/agent/*.yaml``;
 J is ``agent=dqn`` with each switch that is on there turned off. The "bounds on" column lists the switches on in the
 built agent's settings (:func:`ss_drl.agents.targets.assumptions`). Each agent is built as the trainer builds it
@@ -158,5 +162,77 @@ def bench_update(
             f"{batch}; median of {repeats} interleaved repeats of {updates} updates)",
             "",
             markdown_table(["setting", "stage", "bounds on", "ms per update", f"vs {reference}"], rows),
+            "",
+            bench_online_passes(agents[LEARNERS[-1][0]], layout, repeats, updates),
+        ]
+    )
+
+
+def bootstrap_rows(agent) -> int:
+    """Rows the TD target sends through the online network's bootstrap pass in one update of ``agent``: the loss is
+    computed once on a sample, recording the rows of each bootstrap call that takes the online network's action (no
+    gradient step is made)."""
+    loss, rows = agent.loss, []
+
+    def counting(obs, goal, double_rows=None):
+        if loss.double_dqn:
+            rows.append(obs.shape[0] if double_rows is None else double_rows)
+        return type(loss).bootstrap(loss, obs, goal, double_rows)
+
+    loss.bootstrap = counting
+    try:
+        loss(agent.replay_buffer.sample())
+    finally:
+        del loss.bootstrap
+    return sum(rows)
+
+
+def bench_online_passes(agent, layout, repeats: int, updates: int) -> str:
+    """ms of the online network's forward and backward in one update of ``agent``'s size, two ways: today's (a pass
+    with gradients over the batch, then one without over the bootstrap rows) and one pass with gradients over both,
+    whose backward then multiplies through the bootstrap rows too, though their gradients are zero. The network is
+    ``agent``'s (a fresh copy of its architecture); the states are random cells."""
+    from ss_drl.agents.network import GoalQNetwork
+
+    s = agent.settings
+    batch, extra = s.batch_size, bootstrap_rows(agent)
+    torch.manual_seed(0)
+    net = GoalQNetwork(layout, s.encoder, s.embed_dim, s.hidden, s.dueling)
+    optimizer = torch.optim.Adam(net.parameters(), s.lr)
+    obs, goal, boot_obs, boot_goal = (torch.randint(layout.n_cells, (n,)) for n in (batch, batch, extra, extra))
+    both = torch.cat((obs, boot_obs)), torch.cat((goal, boot_goal))
+
+    def two_passes():
+        q = net(obs, goal)
+        with torch.no_grad():
+            held = net(boot_obs, boot_goal)[:batch]
+        optimizer.zero_grad(set_to_none=True)
+        (q - held).square().mean().backward()
+
+    def one_pass():
+        q_all = net(*both)
+        q, held = q_all[:batch], q_all[batch:][:batch].detach()
+        optimizer.zero_grad(set_to_none=True)
+        (q - held).square().mean().backward()
+
+    ways = {"two (the update's): the batch with gradients, the bootstrap rows without": two_passes}
+    ways["one: the batch and the bootstrap rows together, with gradients"] = one_pass
+    for way in ways.values():  # warm-up
+        way()
+    times: dict[str, list[float]] = {name: [] for name in ways}
+    for _ in range(repeats):
+        for name, way in ways.items():
+            start = time.perf_counter()
+            for _ in range(updates):
+                way()
+            times[name].append((time.perf_counter() - start) / updates * 1e3)
+    base = median(next(iter(times.values())))
+    rows = [[name, f"{batch + extra:,}", fmt_ms(median(t)), f"{median(t) / base:.2f}x"] for name, t in times.items()]
+    return "\n".join(
+        [
+            f"### update: the online network's passes in one {LEARNERS[-1][0]} update ({batch} batch rows, {extra:,} "
+            "bootstrap rows; forward and backward, median ms)",
+            "",
+            markdown_table(["online passes", "rows forward", "ms", "vs two"], rows),
         ]
     )

@@ -214,7 +214,7 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
     monkeypatch.setattr(DQNAgent, "update", counted)
     repeats, sizes = 2, cli.QUICK_SIZES["update"]
     text = run_main(["--section", "update", "--quick", "--repeats", str(repeats)])
-    (rows,) = tables(text)
+    rows, passes = tables(text)
     groups = {name: group for name, group, _ in update.LEARNERS}
     assert set(groups.values()) == {"dqn", "dqn_bounded"}  # the two learners, each from its agent group
     assert [row["setting"] for row in rows] == ["J", *groups, update.SOFT_UPDATE, update.SEPARATE, update.PER_ROW]
@@ -264,6 +264,41 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
     assert set(names[bounded_name]) & set(COUNT_MODEL_KEYS)
     assert f"on {sizes['maze']} ({sizes['transitions']:,} random-walk transitions stored" in text
     assert f"batch {replay_only.batch_size};" in text
+    # The second table: the online network's two passes against one, over the bounded update's own row counts.
+    batch = learners[bounded_name].batch_size
+    extra = batch * (1 + 4)  # the next states and, with model targets, the four successors of each
+    assert f"({batch} batch rows, {extra:,} bootstrap rows;" in text
+    assert [row["online passes"].split(":")[0] for row in passes] == ["two (the update's)", "one"]
+    for row in passes:
+        assert number(row["rows forward"]) == batch + extra
+        assert number(row["ms"]) > 0
+        assert_quotient(row["vs two"], row["ms"], passes[0]["ms"])
+
+
+@pytest.mark.parametrize("successor_double", [True, False])
+def test_bootstrap_rows_counts_the_online_networks_bootstrap_rows(successor_double):
+    """One loss computation of the model-bounded learner sends the next states and the model targets' four
+    successors of each through the online network (double DQN), or only the next states when the successors take
+    the target network's own max; the count makes no gradient step."""
+    from ss_drl.envs.maze import load_maze
+    from ss_drl.smart_start import CountModel
+    from ss_drl.training.trainer import make_agent
+
+    layout = load_maze("easy_small")
+    data = update.random_walk_batch(layout, 500, 100)
+    cfg = compose_config(
+        ["+experiment=easy_small_ss_her", "agent=dqn_bounded", f"agent.successor_double_dqn={successor_double}"]
+    )
+    counts = CountModel(layout.n_cells)
+    counts.update(data["observation"], data["action"], data["next", "observation"], data["next", "reward"])
+    torch.manual_seed(0)
+    agent = make_agent(cfg, layout, 0, counts)
+    agent.store(data)
+    before = [p.detach().clone() for p in agent.loss.parameters()]
+    batch = agent.settings.batch_size
+    assert update.bootstrap_rows(agent) == (batch * 5 if successor_double else batch)
+    assert all(torch.equal(a, b) for a, b in zip(before, agent.loss.parameters()))
+    assert agent.updates == 0 and "bootstrap" not in vars(agent.loss)
 
 
 def test_random_walk_batch_moves_as_the_maze_does():
