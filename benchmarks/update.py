@@ -198,7 +198,6 @@ def bench_online_passes(agent, layout, repeats: int, updates: int) -> str:
     batch, extra = s.batch_size, bootstrap_rows(agent)
     torch.manual_seed(0)
     net = GoalQNetwork(layout, s.encoder, s.embed_dim, s.hidden, s.dueling)
-    optimizer = torch.optim.Adam(net.parameters(), s.lr)
     obs, goal, boot_obs, boot_goal = (torch.randint(layout.n_cells, (n,)) for n in (batch, batch, extra, extra))
     both = torch.cat((obs, boot_obs)), torch.cat((goal, boot_goal))
 
@@ -206,13 +205,13 @@ def bench_online_passes(agent, layout, repeats: int, updates: int) -> str:
         q = net(obs, goal)
         with torch.no_grad():
             held = net(boot_obs, boot_goal)[:batch]
-        optimizer.zero_grad(set_to_none=True)
+        net.zero_grad(set_to_none=True)
         (q - held).square().mean().backward()
 
     def one_pass():
         q_all = net(*both)
         q, held = q_all[:batch], q_all[batch:][:batch].detach()
-        optimizer.zero_grad(set_to_none=True)
+        net.zero_grad(set_to_none=True)
         (q - held).square().mean().backward()
 
     ways = {"two (the update's): the batch with gradients, the bootstrap rows without": two_passes}
