@@ -170,20 +170,19 @@ def bench_update(
 
 def bootstrap_rows(agent) -> int:
     """Rows the TD target sends through the online network's bootstrap pass in one update of ``agent``: the loss is
-    computed once on a sample, recording the rows of each bootstrap call that takes the online network's action (no
-    gradient step is made)."""
+    computed once on a sample, counting the rows of each online pass made for the bootstrap (no gradient step is
+    made)."""
     loss, rows = agent.loss, []
 
-    def counting(obs, goal, double_rows=None):
-        if loss.double_dqn:
-            rows.append(obs.shape[0] if double_rows is None else double_rows)
-        return type(loss).bootstrap(loss, obs, goal, double_rows)
+    def counting(obs, goal):
+        rows.append(obs.shape[0])
+        return type(loss)._online(loss, obs, goal)
 
-    loss.bootstrap = counting
+    loss._online = counting
     try:
         loss(agent.replay_buffer.sample())
     finally:
-        del loss.bootstrap
+        del loss._online
     return sum(rows)
 
 
@@ -214,8 +213,10 @@ def bench_online_passes(agent, layout, repeats: int, updates: int) -> str:
         net.zero_grad(set_to_none=True)
         (q - held).square().mean().backward()
 
-    ways = {"two (the update's): the batch with gradients, the bootstrap rows without": two_passes}
-    ways["one: the batch and the bootstrap rows together, with gradients"] = one_pass
+    ways = {
+        "two (the update's): the batch with gradients, the bootstrap rows without": two_passes,
+        "one: the batch and the bootstrap rows together, with gradients": one_pass,
+    }
     for way in ways.values():  # warm-up
         way()
     times: dict[str, list[float]] = {name: [] for name in ways}

@@ -298,7 +298,7 @@ def test_bootstrap_rows_counts_the_online_networks_bootstrap_rows(successor_doub
     batch = agent.settings.batch_size
     assert update.bootstrap_rows(agent) == (batch * 5 if successor_double else batch)
     assert all(torch.equal(a, b) for a, b in zip(before, agent.loss.parameters()))
-    assert agent.updates == 0 and "bootstrap" not in vars(agent.loss)
+    assert agent.updates == 0 and "_online" not in vars(agent.loss)
 
 
 def test_random_walk_batch_moves_as_the_maze_does():
