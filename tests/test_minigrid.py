@@ -9,16 +9,15 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-from helpers import ROOT, TINY, assert_resume_equals_uninterrupted, compose_cfg
-from hydra import compose, initialize_config_dir
+from helpers import TINY, assert_resume_equals_uninterrupted, compose_cfg
 from tensordict import TensorDict
 
 pytest.importorskip("minigrid")
 
 from ss_drl.agents.network import GoalQNetwork  # noqa: E402
-from ss_drl.agents.targets import DistanceFloor, ModelTargets, Scale  # noqa: E402
+from ss_drl.agents.targets import DistanceFloor, ModelTargets, Scale, TurnDistanceCeiling, make_td_target  # noqa: E402
 from ss_drl.envs.batched import BatchedMazeEnv  # noqa: E402
-from ss_drl.envs.minigrid import ACTIONS, MiniGridError, MiniGridTask, minigrid_task  # noqa: E402
+from ss_drl.envs.minigrid import ACTIONS, MiniGridError, MiniGridTask, StateKey, minigrid_task  # noqa: E402
 from ss_drl.evaluate import main as evaluate_main  # noqa: E402
 from ss_drl.her import HindsightReplayBuffer  # noqa: E402
 from ss_drl.smart_start.counts import CountModel  # noqa: E402
@@ -261,21 +260,89 @@ def test_on_a_fully_explored_model_the_distance_floor_is_the_true_distance():
     assert into_goal.any() and torch.equal(held[into_goal], torch.ones(int(into_goal.sum())))
 
 
-def test_on_minigrid_the_bounds_that_need_a_grid_with_four_moves_are_turned_off_in_one_line(capsys):
-    """The model-bounded learner keeps what holds (deterministic moves, the count model): the hindsight bound, the
-    distance floor, the model targets; the ceiling and the optimistic floor need a grid cell with four moves."""
+def observe_in(task: MiniGridTask, counts: CountModel, pairs) -> None:
+    """Count one transition per (state, action) of ``pairs``, with the task's real successor."""
+    s = np.array([p[0] for p in pairs])
+    a = np.array([p[1] for p in pairs])
+    s2 = task.transition_table()[s, a]
+    reward = torch.from_numpy(task.state_cell[s2] == task.goal_cell).float()
+    counts.update(torch.from_numpy(s), torch.from_numpy(a), torch.from_numpy(s2), reward)
+
+
+LEFT, RIGHT, FORWARD, PICKUP, TOGGLE = range(5)
+
+
+def test_the_turning_ceiling_by_hand_on_an_empty_room():
+    """MiniGrid-Empty-5x5: a 3 x 3 room inside the outer wall, the agent at (1, 1) facing right, the goal at (3, 3).
+    From the start the fewest actions are forward, forward, right, forward, forward (5); a turn costs an action."""
+    task = MiniGridTask("MiniGrid-Empty-5x5-v0", 0)
+    assert task.start == (1, 1) and task.goal_cell == 3 * 5 + 3 and task.features[0, 1] == 0
+    counts = CountModel(task.n_states, task.n_actions)
+    ceiling = TurnDistanceCeiling(counts, task, Scale(1.0, 1.0))
+    steps = ceiling.steps().view(task.n_states, 5)
+    # untried: left faces up (then right, then 5: 7), right faces down (then 5 the other way round: 6), forward
+    # reaches (2, 1) facing right (4 more: 5), pickup and toggle stay (1 + 5)
+    assert steps[0].tolist() == [7, 6, 5, 6, 6]
+    # The outer wall is not known yet: from (3, 1) facing up, a forward may reach (3, 0), which is no nearer.
+    corner_up = task.ids[StateKey(3, 1, 3, (), 0)]  # (column 3, row 1) facing up
+    assert steps[corner_up, FORWARD] == 1 + 4  # staying (up: right, then 3) beats the cell ahead (5)
+    observe_in(task, counts, [(corner_up, FORWARD)])  # it bumps: (3, 0) is a wall
+    walls = ceiling.known_walls()
+    assert walls.sum() == 1 and walls[0 * 5 + 3]
+    assert ceiling.steps().view(task.n_states, 5)[corner_up, FORWARD] == 1 + 4  # tried: it stayed
+
+
+def test_a_closed_door_or_a_key_that_blocks_a_forward_is_no_wall():
+    """DoorKey-5x5: a forward into the locked door or onto the key stays, but neither cell becomes a wall."""
+    task = MiniGridTask(DOORKEY, 0)
+    table = task.transition_table()
+    blocked = [
+        (s, FORWARD) for s in range(task.n_states) if table[s, FORWARD] == s and task.state_cell[s] != task.goal_cell
+    ]
+    counts = CountModel(task.n_states, task.n_actions)
+    observe_in(task, counts, blocked)
+    walls = TurnDistanceCeiling(counts, task, Scale(1.0, 1.0)).known_walls()
+    openable = [y * task.width + x for _, (x, y) in (*task.doors, *task.pickables)]
+    assert not walls[openable].any()
+    assert walls.any() and np.array_equal(walls, task.walls.reshape(-1) & walls)  # every wall it knows is one
+
+
+@pytest.mark.parametrize("env_id, layout", [(DOORKEY, 0), (FOURROOMS, 0), ("MiniGrid-MultiRoom-N4-S5-v0", 2)])
+def test_the_turning_ceiling_never_exceeds_the_true_steps_on_any_partial_model(env_id, layout):
+    """For count models that have seen random subsets of a task's transitions, every (s, a) off the goal has
+    ceiling steps <= 1 + d(s') (s' its real successor, d the BFS distance on the true state graph); on FourRooms,
+    which has no doors, they are equal once every transition is seen."""
+    task = minigrid_task(env_id, layout)
+    dist, table = task.distances_to_goal(), task.transition_table()
+    live = task.state_cell != task.goal_cell
+    true_steps = np.where(dist[table] >= 0, 1 + dist[table], np.iinfo(np.int64).max)[live]
+    rng = np.random.default_rng(0)
+    for share in (0.0, 0.1, 0.5, 1.0):
+        counts = CountModel(task.n_states, task.n_actions)
+        s, a = np.nonzero((rng.random(table.shape) < share) & live[:, None])
+        if s.size:
+            observe_in(task, counts, list(zip(s.tolist(), a.tolist())))
+        steps = TurnDistanceCeiling(counts, task, Scale(1.0, 1.0)).steps().view(task.n_states, -1)[live].numpy()
+        assert (steps <= true_steps).all()
+        if share == 1.0 and env_id == FOURROOMS:
+            np.testing.assert_array_equal(steps, true_steps)
+        if share == 0.0:
+            assert (steps < true_steps).any()  # the empty model sees through walls
+
+
+def test_on_minigrid_the_model_bounded_learner_keeps_every_bound(capsys):
+    """Every bound of the model-bounded learner holds on MiniGrid (deterministic moves, the count model, a grid
+    whose agent turns and moves forward): the ceiling is the turning one, so the optimistic floor stays on too;
+    the replay-only learner loses nothing either."""
     settings = dqn_settings(compose_cfg("+experiment=minigrid_ss_her_bounded", f"env.id={DOORKEY}"))
-    lines = capsys.readouterr().err.strip().splitlines()
-    assert len(lines) == 1 and "agent.distance_ceiling, agent.optimistic_floor" in lines[0]
+    assert capsys.readouterr().err == ""
     assert settings.distance_floor and settings.model_targets and settings.hindsight_bound
-    assert not settings.distance_ceiling and not settings.optimistic_floor
+    assert settings.distance_ceiling and settings.optimistic_floor
     dqn_settings(compose_cfg("+experiment=minigrid_ss_her", f"env.id={DOORKEY}"))
-    assert capsys.readouterr().err == ""  # the replay-only learner loses nothing
-    overrides = ["+experiment=minigrid_ss_her_bounded", f"env.id={DOORKEY}", "agent.distance_ceiling=true"]
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=overrides, return_hydra_config=True)  # the command line is known
-    with pytest.raises(ConfigError, match=r"^agent.distance_ceiling=true: this environment breaks"):
-        validate_config(cfg)  # set explicitly: refused, not turned off
+    assert capsys.readouterr().err == ""
+    task = minigrid_task(DOORKEY, 0)
+    target = make_td_target(settings, task, CountModel(task.n_states, task.n_actions), None)
+    assert any(isinstance(b, TurnDistanceCeiling) for b in target.bounds)
 
 
 # --- runs ------------------------------------------------------------------------------------------------------------
@@ -292,7 +359,8 @@ def test_a_minigrid_run_resumes_as_if_uninterrupted(tmp_path, capsys):
     full = assert_resume_equals_uninterrupted(run, tmp_path)
     summary = json.loads((full / SUMMARY_FILE).read_text())
     assert summary["maze"] == DOORKEY and summary["optimal_length"] == 11
-    assert summary["bounds_in_force"] == ["hindsight_bound", "distance_floor", "model_targets", "bound_all_actions"]
+    bounds = ["hindsight_bound", "distance_floor", "distance_ceiling", "model_targets", "optimistic_floor"]
+    assert summary["bounds_in_force"] == [*bounds, "bound_all_actions"]
     assert (full / "smart_start.png").is_file()  # visit counts per cell
     # evaluate.py draws the MiniGrid frame with the greedy path.
     assert evaluate_main([str(full), "--out", str(tmp_path / "greedy.png")]) == 0

@@ -41,10 +41,11 @@ bound                     gives                  assumes
 ``n_step_max``            lower, taken action    the stored episode, deterministic moves, and target-network
                                                  values that do not overestimate (it bootstraps from them: a
                                                  heuristic bound while they do)
-``distance_floor``        lower, all actions*    the count model, deterministic moves (+ grid with four moves
+``distance_floor``        lower, all actions*    the count model, deterministic moves (+ the ceiling's grid
                                                  with ``optimistic_floor``, which makes it the ceiling where no
                                                  route into G is known: optimism, not a bound)
-``distance_ceiling``      upper, all actions*    the count model, deterministic moves, grid with four moves
+``distance_ceiling``      upper, all actions*    the count model, deterministic moves, a grid with four moves
+                                                 (mazes) or with turns and forward moves (MiniGrid)
 ``model_targets``         the other actions      the count model, deterministic moves
 ========================  =====================  ==================================================================
 
@@ -69,16 +70,18 @@ ASSUMPTIONS = {
     "stored_episode": "the stored episode's own steps (nothing outside the replay buffer)",
     "deterministic": "deterministic moves: the same action from the same state always leads to the same state",
     "grid_four_moves": "the state is a grid cell and each of the four moves leads to its neighbour or stays",
+    "grid_turns": "the state holds a grid cell and a direction; forward moves one cell that way or stays, left and "
+    "right turn, the other actions keep cell and direction",
     "count_model": "the count model's observed transitions",
 }
 
-#: What a Keulen maze (``env.preset`` / ``env.layout``) offers: every assumption holds.
-MAZE = frozenset(ASSUMPTIONS)
+#: What a Keulen maze (``env.preset`` / ``env.layout``) offers: every assumption but MiniGrid's turns.
+MAZE = frozenset(ASSUMPTIONS) - {"grid_turns"}
 #: What a maze with stochastic moves (``env.slip > 0``) offers: everything but deterministic moves.
 STOCHASTIC_MAZE = MAZE - {"deterministic"}
-#: What a MiniGrid task (``env.id``) offers: deterministic moves with a fixed layout, but its state is not a grid cell
-#: with four moves (turns, a direction, doors, a carried object), so no distance ceiling and no optimistic floor.
-MINIGRID = MAZE - {"grid_four_moves"}
+#: What a MiniGrid task (``env.id``) offers: deterministic moves with a fixed layout, and a state that holds a cell
+#: and a direction (plus doors and a carried object) with turns and forward moves, not four moves.
+MINIGRID = (MAZE - {"grid_four_moves"}) | {"grid_turns"}
 
 
 def environment_assumptions(env_cfg) -> frozenset[str]:
@@ -242,7 +245,29 @@ class _GoalDistance:
         return torch.where(real, bound, torch.full_like(bound, other))
 
 
-class DistanceCeiling(_GoalDistance, Bound):
+class _Ceiling(_GoalDistance, Bound):
+    """A distance ceiling: the steps to G in an optimistic world whose only walls are those the count model has
+    seen, as an upper bound on the targets for G. A subclass gives the world (:meth:`known_walls`,
+    :meth:`distances`) and the steps per (s, a) to a successor (:meth:`_per_action`)."""
+
+    key = "distance_ceiling"
+    _walls: np.ndarray | None = None
+    _distance: np.ndarray | None = None
+
+    def _compute(self) -> torch.Tensor:
+        walls = self.known_walls()
+        if self._distance is None or not np.array_equal(walls, self._walls):  # a new wall: search again
+            self._walls, self._distance = walls, self.distances(walls)
+        return torch.from_numpy(1 + self._per_action(walls, self._distance)).to(torch.float32)
+
+    def upper(self, sample):
+        return self.bound_for_g(sample, self.steps(), torch.inf, all_actions=False)
+
+    def upper_all(self, sample):
+        return self.bound_for_g(sample, self.steps(), torch.inf, all_actions=True) if self.all_actions else None
+
+
+class DistanceCeiling(_Ceiling):
     """The fewest steps to G the count model cannot rule out, as an upper bound on the targets for G
     (``agent.distance_ceiling``).
 
@@ -254,7 +279,6 @@ class DistanceCeiling(_GoalDistance, Bound):
     or s itself if the neighbour turns out to be a wall); their value bounds Q*(s, a||G) from above.
     """
 
-    key = "distance_ceiling"
     assumes = frozenset({"count_model", "deterministic", "grid_four_moves"})
 
     def __init__(self, counts, height: int, width: int, goal: int, scale: Scale, all_actions: bool = False):
@@ -270,8 +294,6 @@ class DistanceCeiling(_GoalDistance, Bound):
             r, c = rows + dr, cols + dc
             inside = (r >= 0) & (r < self.height) & (c >= 0) & (c < self.width)
             self.neighbour[inside, a] = r[inside] * self.width + c[inside]
-        self._walls: np.ndarray | None = None
-        self._distance: np.ndarray | None = None
 
     def known_walls(self) -> np.ndarray:
         """(S,) bool: cells the count model has seen a move bump into."""
@@ -298,12 +320,8 @@ class DistanceCeiling(_GoalDistance, Bound):
         dist[dist < 0] = n
         return dist
 
-    def _compute(self) -> torch.Tensor:
+    def _per_action(self, walls: np.ndarray, dist: np.ndarray) -> np.ndarray:
         keys = self.counts.keys
-        walls = self.known_walls()
-        if self._distance is None or not np.array_equal(walls, self._walls):  # a new wall: search again
-            self._walls, self._distance = walls, self.distances(walls)
-        dist = self._distance
         n, a_n = self.counts.n_states, self.counts.n_actions
         here = np.repeat(dist, a_n).reshape(n, a_n)  # s itself (a bump)
         target = self.neighbour
@@ -312,13 +330,100 @@ class DistanceCeiling(_GoalDistance, Bound):
         nearer = np.minimum(here, there).reshape(-1)  # untried (s, a): whichever successor it turns out to have
         known = keys.numpy()
         nearer[known // n] = dist[known % n]  # tried (s, a): the successor observed (one, in a deterministic maze)
-        return torch.from_numpy(1 + nearer).to(torch.float32)
+        return nearer
 
-    def upper(self, sample):
-        return self.bound_for_g(sample, self.steps(), torch.inf, all_actions=False)
 
-    def upper_all(self, sample):
-        return self.bound_for_g(sample, self.steps(), torch.inf, all_actions=True) if self.all_actions else None
+class TurnDistanceCeiling(_Ceiling):
+    """:class:`DistanceCeiling` for a MiniGrid task, whose agent turns and moves forward (``agent.distance_ceiling``).
+
+    The *optimistic grid* relaxes the task: its states are (cell, direction) only, ``left`` and ``right`` turn,
+    ``forward`` moves one cell the way the agent faces unless that cell is a known wall, and ``pickup`` and
+    ``toggle`` move nothing; doors are open and objects gone. Every real transition is one of these moves (a real
+    forward that stays is a move of the optimistic grid's kind ``stay``), so its distances are never longer than the
+    true ones, whatever the doors and the carried object: d_opt(s, G) <= d(s, G). A wall is a cell that a tried
+    forward was seen to stay in front of, unless a door or a key or ball stands there (those block a forward but can
+    be opened or picked up). Per (s, a) the ceiling's steps are ``1 + d_opt(s')``, s' the observed successor of a
+    tried (s, a); for an untried one the turned direction for a turn, s's own for ``pickup`` and ``toggle``, and
+    for ``forward`` the nearer of the cell ahead and staying.
+    """
+
+    assumes = frozenset({"count_model", "deterministic", "grid_turns"})
+    LEFT, RIGHT, FORWARD = 0, 1, 2
+    #: (column, row) step of each MiniGrid direction: right, down, left, up
+    DIRECTIONS = ((1, 0), (0, 1), (-1, 0), (0, -1))
+
+    def __init__(self, counts, task, scale: Scale, all_actions: bool = False):
+        super().__init__(counts, task.goal_cell, scale, all_actions)
+        self.width = int(task.width)
+        n_cells = int(task.height) * self.width
+        features = np.asarray(task.features)
+        #: (S,) each state's node of the optimistic grid: 4 * cell + direction
+        self.node = features[:, 0] * 4 + features[:, 1]
+        if counts.n_states != len(self.node) or counts.n_actions != 5:
+            raise ValueError(
+                f"count model has {counts.n_states} states x {counts.n_actions} actions, task {self.node.size} x 5"
+            )
+        rows, cols = np.divmod(np.arange(n_cells), self.width)
+        #: (4 * cells, 5) the node each action leads to in the optimistic grid without walls; -1: forward off the grid
+        self.move = np.empty((4 * n_cells, 5), dtype=np.int64)
+        for d, (dx, dy) in enumerate(self.DIRECTIONS):
+            nodes = 4 * np.arange(n_cells) + d
+            r, c = rows + dy, cols + dx
+            inside = (r >= 0) & (r < task.height) & (c >= 0) & (c < self.width)
+            self.move[nodes, self.LEFT] = nodes - d + (d - 1) % 4
+            self.move[nodes, self.RIGHT] = nodes - d + (d + 1) % 4
+            self.move[nodes, self.FORWARD] = np.where(inside, 4 * (r * self.width + c) + d, -1)
+            self.move[nodes, 3:] = nodes[:, None]
+        #: cells that block a forward without being walls: doors, keys and balls
+        self.openable = np.zeros(n_cells, dtype=bool)
+        for _, (x, y) in (*task.doors, *task.pickables):
+            self.openable[y * self.width + x] = True
+        self.goal_nodes = 4 * int(task.goal_cell) + np.arange(4)
+
+    def known_walls(self) -> np.ndarray:
+        """(cells,) bool: cells a tried forward was seen to stay in front of (doors, keys and balls excepted)."""
+        n, a_n = self.counts.n_states, self.counts.n_actions
+        keys = self.counts.keys.numpy()
+        sa, s2 = keys // n, keys % n
+        s, a = sa // a_n, sa % a_n
+        ahead = self.move[self.node[s], self.FORWARD]
+        bumped = (a == self.FORWARD) & (self.node[s2] == self.node[s]) & (ahead >= 0)
+        walls = np.zeros(self.openable.size, dtype=bool)
+        walls[ahead[bumped] // 4] = True
+        walls &= ~self.openable
+        return walls
+
+    def distances(self, walls: np.ndarray) -> np.ndarray:
+        """(nodes,) actions from every node to a node in G's cell in the optimistic grid whose only walls are
+        ``walls``; a node that cannot reach one gets the node count (more than any simple path). The search runs
+        backwards from G's nodes, on the moves' predecessor lists."""
+        n_nodes = self.move.shape[0]
+        into: list[list[int]] = [[] for _ in range(n_nodes)]
+        blocked = walls.tolist()
+        for u, row in enumerate(self.move[:, : self.FORWARD + 1].tolist()):
+            for v in row:
+                if v >= 0 and v != u and not blocked[v // 4]:
+                    into[v].append(u)
+        dist = [-1] * n_nodes
+        for g in self.goal_nodes.tolist():
+            dist[g] = 0
+        breadth_first(self.goal_nodes.tolist(), dist, into)
+        dist = np.asarray(dist, dtype=np.int64)
+        dist[dist < 0] = n_nodes
+        return dist
+
+    def _per_action(self, walls: np.ndarray, dist: np.ndarray) -> np.ndarray:
+        n = self.counts.n_states
+        succ = self.move[self.node]  # (S, 5)
+        steps = dist[np.maximum(succ, 0)]
+        ahead = succ[:, self.FORWARD]
+        ahead_open = (ahead >= 0) & ~walls[np.maximum(ahead, 0) // 4]
+        there = np.where(ahead_open, steps[:, self.FORWARD], dist.size)
+        steps[:, self.FORWARD] = np.minimum(dist[self.node], there)  # untried forward: the cell ahead, or staying
+        nearer = steps.reshape(-1)
+        known = self.counts.keys.numpy()
+        nearer[known // n] = dist[self.node[known % n]]  # tried (s, a): the successor observed
+        return nearer
 
 
 class DistanceFloor(_GoalDistance, Bound):
@@ -577,8 +682,16 @@ class TDTarget:
 # --- building the target from the settings ------------------------------------------------------------------------
 
 
-def assumptions(settings) -> dict[str, frozenset[str]]:
-    """Per switch that is on in ``settings`` (bounds and their modifiers), what it assumes."""
+def ceiling_class(holds: frozenset[str] = MAZE) -> type[_Ceiling]:
+    """The distance ceiling of an environment that meets ``holds``: :class:`TurnDistanceCeiling` where the agent
+    turns and moves forward (MiniGrid), else :class:`DistanceCeiling` (four moves)."""
+    return TurnDistanceCeiling if "grid_turns" in holds else DistanceCeiling
+
+
+def assumptions(settings, holds: frozenset[str] = MAZE) -> dict[str, frozenset[str]]:
+    """Per switch that is on in ``settings`` (bounds and their modifiers), what it assumes, in an environment that
+    meets ``holds`` (which picks the distance ceiling's kind)."""
+    ceiling = ceiling_class(holds)
     out = {}
     if settings.hindsight_bound:
         out["hindsight_bound"] = HindsightBound.assumes
@@ -587,11 +700,11 @@ def assumptions(settings) -> dict[str, frozenset[str]]:
     if settings.distance_floor:
         out["distance_floor"] = DistanceFloor.assumes
     if settings.distance_ceiling:
-        out["distance_ceiling"] = DistanceCeiling.assumes
+        out["distance_ceiling"] = ceiling.assumes
     if settings.model_targets:
         out["model_targets"] = ModelTargets.assumes
     if settings.optimistic_floor:
-        out["optimistic_floor"] = DistanceFloor.assumes | DistanceCeiling.assumes
+        out["optimistic_floor"] = DistanceFloor.assumes | ceiling.assumes
     if settings.bound_all_actions:
         out["bound_all_actions"] = frozenset({"count_model", "deterministic"})
     return out
@@ -603,7 +716,7 @@ def resolve_bounds(settings, holds: frozenset[str], explicit: Sequence[str] = ()
     maze). ``explicit``: the agent keys the user set on the command line; such a switch is refused (``ValueError``)
     instead."""
     off, broken_all = {}, set()
-    for key, needs in assumptions(settings).items():
+    for key, needs in assumptions(settings, holds).items():
         broken = sorted(needs - holds)
         if not broken:
             continue
@@ -636,7 +749,12 @@ def make_td_target(
         bounds.append(NStepMax(scale, settings.n_step))
     ceiling = None
     if settings.distance_ceiling:
-        ceiling = DistanceCeiling(counts, maze.height, maze.width, maze.goal_cell, scale, settings.bound_all_actions)
+        if getattr(maze, "features", None) is not None:  # a MiniGrid task: turns and forward moves
+            ceiling = TurnDistanceCeiling(counts, maze, scale, settings.bound_all_actions)
+        else:
+            ceiling = DistanceCeiling(
+                counts, maze.height, maze.width, maze.goal_cell, scale, settings.bound_all_actions
+            )
     cells = state_cells(maze)
     if settings.distance_floor:
         optimistic = ceiling if settings.optimistic_floor else None
