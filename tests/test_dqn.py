@@ -25,7 +25,14 @@ from torchrl.objectives import DQNLoss, SoftUpdate
 from ss_drl.agents.dqn import DQNAgent, PolyakUpdate, value_range
 from ss_drl.agents.network import CellEncoder
 from ss_drl.agents.settings import DQNSettings
-from ss_drl.agents.targets import DistanceCeiling, DistanceFloor, HindsightBound, NStepMax, make_td_target
+from ss_drl.agents.targets import (
+    DistanceCeiling,
+    DistanceFloor,
+    HindsightBound,
+    NStepMax,
+    environment_assumptions,
+    make_td_target,
+)
 from ss_drl.envs.maze import load_maze
 from ss_drl.her import HindsightReplayBuffer
 from ss_drl.smart_start import CountModel
@@ -71,7 +78,7 @@ def make_agent(*overrides: str, counts: CountModel | None = None) -> DQNAgent:
     )
     max_steps = cfg.env.max_steps
     clip = value_range(settings.gamma, settings.step_cost, max_steps) if settings.clip_targets else None
-    td_target = make_td_target(settings, maze, counts, clip or None)
+    td_target = make_td_target(settings, maze, counts, clip or None, holds=environment_assumptions(cfg.env))
     torch.manual_seed(0)
     return DQNAgent(settings, maze, buffer, td_target, max_steps=max_steps)
 

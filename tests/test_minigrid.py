@@ -15,7 +15,7 @@ from tensordict import TensorDict
 pytest.importorskip("minigrid")
 
 from ss_drl.agents.network import GoalQNetwork  # noqa: E402
-from ss_drl.agents.targets import DistanceFloor, ModelTargets, Scale, TurnDistanceCeiling, make_td_target  # noqa: E402
+from ss_drl.agents.targets import DistanceFloor, ModelTargets, Scale, TurnDistanceCeiling  # noqa: E402
 from ss_drl.envs.batched import BatchedMazeEnv  # noqa: E402
 from ss_drl.envs.minigrid import ACTIONS, MiniGridError, MiniGridTask, StateKey, minigrid_task  # noqa: E402
 from ss_drl.evaluate import main as evaluate_main  # noqa: E402
@@ -23,7 +23,7 @@ from ss_drl.her import HindsightReplayBuffer  # noqa: E402
 from ss_drl.smart_start.counts import CountModel  # noqa: E402
 from ss_drl.training.config import ConfigError, validate_config  # noqa: E402
 from ss_drl.training.outputs import EPISODES_FILE, EVAL_FILE, SUMMARY_FILE  # noqa: E402
-from ss_drl.training.trainer import Trainer, dqn_settings, make_maze  # noqa: E402
+from ss_drl.training.trainer import Trainer, dqn_settings, make_agent, make_maze  # noqa: E402
 
 DOORKEY = "MiniGrid-DoorKey-5x5-v0"
 FOURROOMS = "MiniGrid-FourRooms-v0"
@@ -340,9 +340,12 @@ def test_on_minigrid_the_model_bounded_learner_keeps_every_bound(capsys):
     assert settings.distance_ceiling and settings.optimistic_floor
     dqn_settings(compose_cfg("+experiment=minigrid_ss_her", f"env.id={DOORKEY}"))
     assert capsys.readouterr().err == ""
+    # The trainer's agent takes the turning ceiling, picked by the assumptions the config's environment meets.
+    cfg = compose_cfg("+experiment=minigrid_ss_her_bounded", f"env.id={DOORKEY}")
     task = minigrid_task(DOORKEY, 0)
-    target = make_td_target(settings, task, CountModel(task.n_states, task.n_actions), None)
-    assert any(isinstance(b, TurnDistanceCeiling) for b in target.bounds)
+    agent = make_agent(cfg, task, seed=0, counts=CountModel(task.n_states, task.n_actions))
+    assert any(isinstance(b, TurnDistanceCeiling) for b in agent.td_target.bounds)
+    assert capsys.readouterr().err == ""
 
 
 # --- runs ------------------------------------------------------------------------------------------------------------

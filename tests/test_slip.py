@@ -117,12 +117,12 @@ def test_both_learners_turn_their_deterministic_bounds_off_in_one_line(method, c
     assert on_before and all(f"agent.{k}" in lines[0] for k in on_before)
     assert not any(getattr(settings, k) for k in on_before)
     # What summary.json lists as bounds_in_force: nothing, for either learner.
-    from ss_drl.agents.targets import make_td_target
+    from ss_drl.agents.targets import STOCHASTIC_MAZE, make_td_target
     from ss_drl.envs import load_maze
     from ss_drl.smart_start.counts import CountModel
 
     maze = load_maze("easy_small")
-    assert make_td_target(settings, maze, CountModel(maze.n_cells), None).in_force == []
+    assert make_td_target(settings, maze, CountModel(maze.n_cells), None, holds=STOCHASTIC_MAZE).in_force == []
     # Without slips nothing is turned off.
     dqn_settings(compose_cfg(f"+experiment=easy_small_{method}"))
     assert "turned off" not in capsys.readouterr().err

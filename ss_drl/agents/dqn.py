@@ -15,7 +15,7 @@ from torchrl.objectives.utils import distance_loss
 from ss_drl.agents.network import GoalQNetwork
 from ss_drl.agents.settings import DQNSettings
 from ss_drl.agents.tables import LazyAdam, LazyPolyak, clip_grad_norm, table_keys
-from ss_drl.agents.targets import TDTarget, make_td_target
+from ss_drl.agents.targets import MAZE, TDTarget, make_td_target
 from ss_drl.envs.maze import Maze
 from ss_drl.ops import epsilon_greedy
 
@@ -192,7 +192,7 @@ class DQNAgent:
         self.step_cost, self.gamma = s.step_cost, s.gamma
         if td_target is None:
             clip = value_range(s.gamma, s.step_cost, max_steps) if s.clip_targets else None
-            td_target = make_td_target(s, maze, None, clip)
+            td_target = make_td_target(s, maze, None, clip, holds=MAZE)  # no count model: no ceiling to pick
         self.td_target = td_target
         if "hindsight_bound" in td_target.names and not getattr(replay_buffer, "goal_steps", False):
             raise ValueError("agent.hindsight_bound needs a replay buffer built with goal_steps=True")

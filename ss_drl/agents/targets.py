@@ -266,6 +266,11 @@ class _Ceiling(_GoalDistance, Bound):
     def upper_all(self, sample):
         return self.bound_for_g(sample, self.steps(), torch.inf, all_actions=True) if self.all_actions else None
 
+    @classmethod
+    def for_task(cls, counts, task, scale: Scale, all_actions: bool = False) -> _Ceiling:
+        """The ceiling on ``task`` (a :class:`~ss_drl.envs.maze.Maze` or a MiniGrid task) with its count model."""
+        return cls(counts, task, scale, all_actions)
+
 
 class DistanceCeiling(_Ceiling):
     """The fewest steps to G the count model cannot rule out, as an upper bound on the targets for G
@@ -294,6 +299,10 @@ class DistanceCeiling(_Ceiling):
             r, c = rows + dr, cols + dc
             inside = (r >= 0) & (r < self.height) & (c >= 0) & (c < self.width)
             self.neighbour[inside, a] = r[inside] * self.width + c[inside]
+
+    @classmethod
+    def for_task(cls, counts, task, scale: Scale, all_actions: bool = False) -> DistanceCeiling:
+        return cls(counts, task.height, task.width, task.goal_cell, scale, all_actions)
 
     def known_walls(self) -> np.ndarray:
         """(S,) bool: cells the count model has seen a move bump into."""
@@ -735,10 +744,18 @@ def resolve_bounds(settings, holds: frozenset[str], explicit: Sequence[str] = ()
 
 
 def make_td_target(
-    settings, maze: Maze, counts, value_range: tuple[float, float] | None, fused: bool = True
+    settings,
+    maze: Maze,
+    counts,
+    value_range: tuple[float, float] | None,
+    fused: bool = True,
+    *,
+    holds: frozenset[str],
 ) -> TDTarget:
     """The TD target that ``settings`` (a :class:`~ss_drl.agents.settings.DQNSettings`) names, on ``maze`` with its
-    count model ``counts`` (read only by the bounds that need it); ``fused``: see :class:`TDTarget`."""
+    count model ``counts`` (read only by the bounds that need it); ``fused``: see :class:`TDTarget`. ``holds``: the
+    assumptions the environment meets (:func:`environment_assumptions`), which pick the distance ceiling's kind as
+    they do in :func:`assumptions`."""
     scale = Scale(float(settings.gamma), float(settings.step_cost))
     if counts is None and any(getattr(settings, k) for k in COUNT_MODEL_KEYS):
         raise ValueError("the count model's bounds need the count model (make_td_target(..., counts=...))")
@@ -749,12 +766,7 @@ def make_td_target(
         bounds.append(NStepMax(scale, settings.n_step))
     ceiling = None
     if settings.distance_ceiling:
-        if getattr(maze, "features", None) is not None:  # a MiniGrid task: turns and forward moves
-            ceiling = TurnDistanceCeiling(counts, maze, scale, settings.bound_all_actions)
-        else:
-            ceiling = DistanceCeiling(
-                counts, maze.height, maze.width, maze.goal_cell, scale, settings.bound_all_actions
-            )
+        ceiling = ceiling_class(holds).for_task(counts, maze, scale, settings.bound_all_actions)
     cells = state_cells(maze)
     if settings.distance_floor:
         optimistic = ceiling if settings.optimistic_floor else None

@@ -136,7 +136,7 @@ def make_agent(cfg: DictConfig, maze: Maze, seed: int, counts: CountModel | None
 
         return FrontierExplorer(cfg.agent, maze, seed=seed)
     from ss_drl.agents.dqn import DQNAgent, value_range
-    from ss_drl.agents.targets import make_td_target
+    from ss_drl.agents.targets import environment_assumptions, make_td_target
     from ss_drl.her import HindsightReplayBuffer
 
     settings = dqn_settings(cfg)
@@ -153,7 +153,7 @@ def make_agent(cfg: DictConfig, maze: Maze, seed: int, counts: CountModel | None
         cells=state_cells(maze),
     )
     clip = value_range(settings.gamma, settings.step_cost, cfg.env.max_steps) if settings.clip_targets else None
-    td_target = make_td_target(settings, maze, counts, clip)
+    td_target = make_td_target(settings, maze, counts, clip, holds=environment_assumptions(cfg.env))
     return DQNAgent(settings, maze, buffer, td_target, seed=seed, max_steps=cfg.env.max_steps)
 
 
