@@ -350,6 +350,18 @@ def test_the_frontier_explorer_runs_alone_and_sees_every_move(override, key, val
     validate_config(compose_cfg("easy_small_frontier", ["env.num_envs=4", "trainer.frames_per_batch=4"]))
 
 
+def test_greedy_path_needs_deterministic_moves():
+    """It walks one observed successor per move: refused under slips, before training; allowed without them."""
+    cfg = compose_cfg("easy_small_ss_her_bounded", ["smart_start.greedy_path=true", "env.slip=0.1"])
+    with pytest.raises(
+        ConfigError, match=r"^smart_start.greedy_path: true needs deterministic moves \(env.slip is 0.1\)"
+    ):
+        validate_config(cfg)
+    validate_config(compose_cfg("easy_small_ss_her_bounded", ["smart_start.greedy_path=true"]))
+    with pytest.raises(ConfigError, match=r"^smart_start.greedy_path: expected true or false"):
+        validate_config(compose_cfg("easy_small_ss_her_bounded", ["smart_start.greedy_path=2"]))
+
+
 def test_undiscounted_needs_a_step_cost():
     with pytest.raises(ConfigError, match=r"^agent.gamma: 1 needs agent.step_cost > 0"):
         validate_config(compose_cfg(overrides=["agent.gamma=1", "agent.step_cost=0"]))

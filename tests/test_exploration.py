@@ -253,6 +253,92 @@ def test_options_after_the_goal_was_reached(after_goal):
     assert cell == expected and ss.exploring.tolist() == [after_goal]
 
 
+# --- the untried move on the greedy path (greedy_path) ----------------------------------------------------------------
+def _goal_reached_model(maze, untried_at_4=(D, L, U)) -> CountModel:
+    """Every move of S and of cells 0-3 tried (S 4 times each, the others twice), 4's right once, and G reached once
+    from 5 (5's down): the moves of 4 in ``untried_at_4`` and 5's other three are untried."""
+    table = maze.transition_table()
+    model = CountModel(maze.n_cells)
+    moves = [(c, a, 4 if c == 6 else 2) for c in (6, 0, 1, 2, 3) for a in range(4)]
+    moves += [(4, a, 1) for a in range(4) if a not in untried_at_4] + [(5, D, 1)]
+    for cell, action, times in moves:
+        s, a = torch.full((times,), cell), torch.full((times,), action)
+        nxt = torch.from_numpy(table[s.numpy(), a.numpy()])
+        model.update(s, a, nxt, (nxt == maze.goal_cell).float())
+    return model
+
+
+def _greedy(policy: dict[int, int]):
+    """A greedy_q_values whose greedy action in each state of ``policy`` is the one given (elsewhere right)."""
+
+    def q(states, goals):
+        out = torch.zeros(goals.numel(), states.numel(), 4)
+        for i, s in enumerate(states.tolist()):
+            out[:, i, policy.get(s, R)] = 1.0
+        return out
+
+    return q
+
+
+#: The route along the corridor: S up, then right, and down into G from 5.
+ROUTE = {6: U, 0: R, 1: R, 2: R, 3: R, 4: R, 5: D}
+
+
+def _greedy_path_start(maze, model, policy, greedy_path=True):
+    ss = SmartStart(
+        maze, model, 1, eta=1.0, c_ss=2.0, w_q=0.0, theta=0, planner=Planner(maze.width, gamma=0.99),
+        generator=torch.Generator().manual_seed(0), greedy_path=greedy_path,
+    )  # fmt: skip
+    one = torch.ones(1, dtype=torch.bool)
+    ss.end_episodes(one)
+    online = lambda s, g: torch.zeros(g.numel(), s.numel(), 4)  # noqa: E731
+    ss.start_episodes(one, torch.tensor([maze.start_cell]), torch.tensor([maze.goal_cell]), online, _greedy(policy))
+    return ss
+
+
+def test_greedy_path_sends_the_episode_to_the_untried_greedy_move_and_takes_it():
+    """The greedy path from S goes up and right along the corridor to 4, whose greedy move (down, into the wall
+    below 4) was never tried: S_ss is 4, the guided phase walks there, and the move taken on arrival is down, then
+    the policy. Without the option, the paper's UCB picks the least visited state, 5 (once; 4 three times)."""
+    maze = _maze()
+    model = _goal_reached_model(maze, untried_at_4=(D,))
+    ss = _greedy_path_start(maze, model, {**ROUTE, 4: D})
+    assert ss.target.tolist() == [4] and ss.first_move.tolist() == [D]
+    cell, walked = maze.start_cell, []
+    while ss.active.any():
+        action, cell = _step(ss, maze, cell)
+        walked.append(action)
+    assert walked == [U, R, R, R, R] and cell == 4
+    assert _step(ss, maze, cell) == (D, 4)  # the bump: 4's down is tried now
+    assert _step(ss, maze, cell)[0] == SENTINEL  # then the policy
+    paper = _greedy_path_start(maze, _goal_reached_model(maze, untried_at_4=(D,)), {**ROUTE, 4: D}, greedy_path=False)
+    assert paper.target.tolist() == [5] and paper.first_move.tolist() == [-1]
+
+
+@pytest.mark.parametrize(
+    "policy, why",
+    [(ROUTE, "the greedy path reaches G over tried moves"), ({**ROUTE, 2: L}, "it loops: 1 right to 2, 2 left to 1")],
+)
+def test_greedy_path_without_an_untried_move_leaves_smart_start_as_it_is(policy, why):
+    """Where the greedy path from S meets no untried move, S_ss is the usual UCB choice: with 4's left and up untried
+    (4 visited three times), the least visited state is 5 (once)."""
+    maze = _maze()
+    model = _goal_reached_model(maze, untried_at_4=(L, U))
+    ss = _greedy_path_start(maze, model, policy)
+    paper = _greedy_path_start(maze, model, policy, greedy_path=False)
+    assert ss.target.tolist() == paper.target.tolist() == [5], why
+    assert ss.first_move.tolist() == [-1]
+
+
+def test_greedy_path_waits_for_the_goal():
+    """Before G has been reached, the option does nothing (the exploration options decide S_ss)."""
+    maze = _maze()
+    model = _hand_model(maze)  # no rewarded transition
+    ss = _greedy_path_start(maze, model, {6: U, 0: R, 1: R, 2: R})  # 2's right is untried
+    paper = _greedy_path_start(maze, model, {6: U, 0: R, 1: R, 2: R}, greedy_path=False)
+    assert ss.target.tolist() == paper.target.tolist() and ss.first_move.tolist() == [-1]
+
+
 def test_unknown_option_is_refused():
     maze = _maze()
     with pytest.raises(ValueError, match="select='nearest'"):

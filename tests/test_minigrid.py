@@ -371,6 +371,23 @@ def test_a_minigrid_run_resumes_as_if_uninterrupted(tmp_path, capsys):
 
 
 @pytest.mark.slow
+def test_greedy_path_runs_on_minigrid_and_resumes_as_if_uninterrupted(tmp_path):
+    """``smart_start.greedy_path`` on DoorKey-5x5 (states that are not cells; the guided phase then ends in the very
+    state whose greedy move is untried, not in any state of its cell): some guided phases go to an untried greedy
+    move once G has been reached, and a run cut after its second checkpoint and resumed equals an uninterrupted one
+    (the pending move and the exact-arrival flags are in the checkpoint)."""
+    run = [
+        "+experiment=minigrid_ss_her_bounded", f"env.id={DOORKEY}", "env.max_steps=100", "smart_start.greedy_path=true",
+        "agent.learning_starts=100", "trainer.eval_interval=150",  # the shipped network: TINY's one loops on pickup
+        "trainer.total_env_steps=1500", "trainer.checkpoint_interval=500",
+    ]  # fmt: skip
+    full = assert_resume_equals_uninterrupted(run, tmp_path)
+    summary = json.loads((full / SUMMARY_FILE).read_text())
+    assert summary["first_goal_env_step"] is not None
+    assert 0 < summary["greedy_path_decisions"] < summary["smart_start_decisions"]
+
+
+@pytest.mark.slow
 def test_replay_only_ss_her_learns_doorkey_5x5_by_the_rule(tmp_path):
     """The seed paper's method (replay-only SS+HER, its one setting) learns DoorKey-5x5 layout 0 (a key to pick up and
     a locked door; optimum 11 actions) by the learned rule within 4,000 env steps (seed 0 learns at 2,500): the last

@@ -20,6 +20,13 @@ move not tried yet, :mod:`ss_drl.smart_start.frontier`), as a perfect-memory exp
 
 ``explore_after_goal=False`` turns both options off once the goal has been reached in any episode, so that the rest
 of the run is the paper's Smart Start.
+
+``greedy_path`` (off in the paper's Smart Start) acts once the goal has been reached. Before each guided phase it walks
+the greedy policy that evaluation follows (the network the agent evaluates) from the episode's start on the count
+model's observed transitions. If that walk meets a move never tried, before it reaches G or repeats a state, S_ss is
+the state where it does and, on arrival, that move is taken first; otherwise S_ss is chosen as above. So an optimistic
+value of an untried move on the greedy path (the model-bounded learner's optimistic floor) is tried in training, not
+left for every evaluation to walk into. Deterministic moves only.
 """
 
 from __future__ import annotations
@@ -59,6 +66,11 @@ class SmartStart:
         guided_limit: the guided phase also ends after this many times the planner's route length (at least one
             step); None: no limit. Under slips the route is walked from wherever the agent lands, and a run of bad
             luck must not keep the policy from acting for the rest of the episode.
+        greedy_path: once the goal has been reached, S_ss is the first untried move on the evaluated greedy path
+            from the episode's start, where there is one (:meth:`untried_on_greedy_path`), and that move is taken
+            on arrival.
+        cells: a state's cell, to compare it with the goal (None: states are cells, as in a maze).
+        max_steps: the longest greedy walk :meth:`untried_on_greedy_path` takes (the episode's step budget).
     """
 
     SELECT = ("visited", "frontier")
@@ -82,6 +94,9 @@ class SmartStart:
         explore_after_goal: bool = True,
         guided_limit: float | None = None,
         explore_from_start: bool = False,
+        greedy_path: bool = False,
+        cells=None,
+        max_steps: int = 1000,
     ):
         if select not in self.SELECT or explore not in self.EXPLORE:
             raise ValueError(f"unknown Smart Start option: select={select!r}, explore={explore!r}")
@@ -91,6 +106,7 @@ class SmartStart:
         self.select, self.explore, self.explore_after_goal = select, explore, bool(explore_after_goal)
         self.guided_limit = None if guided_limit is None else float(guided_limit)
         self.explore_from_start = bool(explore_from_start)
+        self.greedy_path, self.cells, self.max_steps = bool(greedy_path), cells, int(max_steps)
         self.frontier = frontier if frontier is not None else Frontier(counts)
         n = int(num_envs)
         self.episodes = torch.zeros(n, dtype=torch.int64)  # finished episodes per copy
@@ -102,12 +118,15 @@ class SmartStart:
         self.target = torch.full((n,), -1, dtype=torch.int64)  # S_ss per copy
         self.route = torch.zeros(n, maze.n_states, dtype=torch.int64)  # greedy planner action per cell
         self.decisions = 0
+        self.greedy_path_decisions = 0  # guided phases sent to an untried move on the greedy path (greedy_path)
         # The exploration phase after arrival (explore != "epsilon_greedy").
         self.exploring = torch.zeros(n, dtype=torch.bool)  # in the exploration phase now
         self.explore_steps = torch.zeros(n, dtype=torch.int64)  # steps taken in it this episode
         self.reach = torch.zeros(n, maze.n_states, dtype=torch.bool)  # cells from which the route leads on
         self.plan_version = torch.full((n,), -1, dtype=torch.int64)  # the model's size when the route was planned
         self.goal = torch.full((n,), -1, dtype=torch.int64)  # the episode's goal (never a frontier state)
+        self.first_move = torch.full((n,), -1, dtype=torch.int64)  # greedy_path: the move to take on arrival
+        self.exact = torch.zeros(n, dtype=torch.bool)  # greedy_path: the guided phase ends in S_ss itself
 
     # --- the options in force --------------------------------------------------------------------------------------
     def goal_found(self) -> bool:
@@ -121,10 +140,17 @@ class SmartStart:
         """Whether each cell is within Manhattan distance theta of its target."""
         return manhattan(self.maze.cells(cells), self.maze.cells(targets), self.maze.width) <= self.theta
 
-    def start_episodes(self, copies: torch.Tensor, cells: torch.Tensor, goals: torch.Tensor, q_values) -> None:
+    def arrived(self, cells: torch.Tensor, targets: torch.Tensor, exact: torch.Tensor) -> torch.Tensor:
+        """Whether each state ends its guided phase: the target itself where ``exact``, else :meth:`within`."""
+        return torch.where(exact, cells == targets, self.within(cells, targets))
+
+    def start_episodes(
+        self, copies: torch.Tensor, cells: torch.Tensor, goals: torch.Tensor, q_values, greedy_q_values=None
+    ) -> None:
         """Begin episodes in the copies of bool mask ``copies``; decide and plan their guided phases.
 
-        ``q_values(states, goals) -> (B, n, A)`` evaluates the online network for all visited states at once.
+        ``q_values(states, goals) -> (B, n, A)`` evaluates the online network for all visited states at once;
+        ``greedy_q_values``, of the same form, the network whose greedy policy is evaluated (``greedy_path``).
         """
         self.active[copies] = False
         self.used[copies] = False
@@ -135,6 +161,8 @@ class SmartStart:
         self.exploring[copies] = False
         self.explore_steps[copies] = 0
         self.goal[copies] = goals[copies]
+        self.first_move[copies] = -1
+        self.exact[copies] = False
         if self.explore_from_start and self.explore == "frontier" and self._options_on():
             # A copy's first episode has no S_ss to travel to: with explore_from_start it explores from S at once.
             self.exploring |= copies & (self.episodes == 0)
@@ -155,7 +183,22 @@ class SmartStart:
             self.generator,
             allowed=self.frontier.states(goals[chosen]) if options and self.select == "frontier" else None,
         )
-        plan = self.planner.plan(self.counts, targets, self.generator)
+        exact = torch.zeros(chosen.numel(), dtype=torch.bool)  # the guided phase ends in S_ss itself
+        if self.greedy_path and self.goal_found():
+            if greedy_q_values is None:
+                raise ValueError("smart_start.greedy_path needs the evaluated network (greedy_q_values)")
+            on_path, moves = self.untried_on_greedy_path(cells[chosen], goals[chosen], greedy_q_values)
+            exact = moves >= 0
+            targets = torch.where(exact, on_path, targets)
+            self.first_move[chosen] = moves
+            self.greedy_path_decisions += int(exact.sum())
+        if bool(exact.any()):  # to the very state whose move is untried, not any state of its cell (MiniGrid)
+            terminal = self.planner.terminal_mask(self.counts.n_states, targets).T
+            terminal[exact] = torch.arange(self.counts.n_states).unsqueeze(0) == targets[exact].unsqueeze(1)
+            plan = self.planner.plan_to(self.counts, terminal, self.generator, targets)
+        else:
+            plan = self.planner.plan(self.counts, targets, self.generator)
+        self.exact[chosen] = exact
         self.decisions += int(chosen.numel())
         self.route[chosen] = plan.policy
         self.target[chosen] = targets
@@ -163,10 +206,40 @@ class SmartStart:
         # V(s0) = gamma^(L - 1) on a deterministic route of L steps: the planner's own estimate of the route length.
         start_values = plan.values[cells[chosen], torch.arange(chosen.numel())]
         self.planned_steps[chosen] = Planner.route_length(start_values, self.planner.gamma).round().long()
-        there = self.within(cells[chosen], targets)
+        there = self.arrived(cells[chosen], targets, exact)
         self.active[chosen] = ~there
         self.reached[chosen] = there
         self.exploring[chosen] = there & (self.explore != "epsilon_greedy") & options
+
+    def untried_on_greedy_path(
+        self, starts: torch.Tensor, goals: torch.Tensor, greedy_q_values
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per start and goal (B,): the first state on the greedy path from the start whose greedy move was never
+        tried, and that move; (-1, -1) where the path reaches the goal, repeats a state or runs ``max_steps`` moves
+        over tried ones first. The path takes the greedy action of ``greedy_q_values`` in each state and the
+        count model's observed successor of each tried move (deterministic moves)."""
+        known = torch.nonzero(self.frontier.known).squeeze(-1)  # every state the walk can be in, S included
+        known = torch.unique(torch.cat((known, starts)))
+        greedy = torch.full((goals.numel(), self.counts.n_states), -1, dtype=torch.int64)
+        greedy[:, known] = greedy_q_values(known, goals).argmax(dim=-1)
+        n = self.counts.n_states
+        successor = self.counts.successors().view(n, self.counts.n_actions).tolist()
+        tried = self.frontier.tried.tolist()
+        cell_of = range(n) if self.cells is None else self.cells(torch.arange(n)).tolist()
+        states = torch.full((goals.numel(),), -1, dtype=torch.int64)
+        moves = torch.full((goals.numel(),), -1, dtype=torch.int64)
+        for i, (s, goal, policy) in enumerate(zip(starts.tolist(), goals.tolist(), greedy.tolist())):
+            seen = {s}
+            for _ in range(self.max_steps):
+                a = policy[s]
+                if not tried[s][a]:
+                    states[i], moves[i] = s, a
+                    break
+                s = successor[s][a]
+                if cell_of[s] == goal or s in seen:
+                    break
+                seen.add(s)
+        return states, moves
 
     def frontier_steps(self, copies: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         """(N,) for the copies of mask ``copies`` that begin with a guided phase: the fewest steps on the count model
@@ -194,6 +267,10 @@ class SmartStart:
         """
         if bool(self.exploring.any()):
             action = self._explore(cells, action)
+        first = (self.first_move >= 0) & ~self.active & self.reached  # arrived at S_ss: its untried greedy move
+        if bool(first.any()):
+            action = torch.where(first, self.first_move, action)
+            self.first_move[first] = -1
         if not bool(self.active.any()):
             return action
         planned = self.route.gather(1, cells.unsqueeze(1)).squeeze(1)
@@ -245,7 +322,7 @@ class SmartStart:
         if not bool(was_active.any()):
             return
         self.steps += was_active.long()
-        arrived = was_active & self.within(next_cells, self.target)
+        arrived = was_active & self.arrived(next_cells, self.target, self.exact)
         self.reached |= arrived
         self.active &= ~arrived & ~done
         if self.guided_limit is not None:
@@ -258,13 +335,18 @@ class SmartStart:
         self.episodes[copies] += 1
         self.active[copies] = False
         self.exploring[copies] = False
+        self.first_move[copies] = -1
 
     STATE = ("episodes", "active", "used", "reached", "steps", "planned_steps", "target", "route")
-    EXPLORE_STATE = ("exploring", "explore_steps", "reach", "plan_version", "goal")
+    EXPLORE_STATE = ("exploring", "explore_steps", "reach", "plan_version", "goal", "first_move", "exact")
 
     def state_dict(self) -> dict:
         state = {name: getattr(self, name).clone() for name in self.STATE + self.EXPLORE_STATE}
-        state.update(generator=self.generator.get_state(), decisions=self.decisions)
+        state.update(
+            generator=self.generator.get_state(),
+            decisions=self.decisions,
+            greedy_path_decisions=self.greedy_path_decisions,
+        )
         return state
 
     def load_state_dict(self, state: dict) -> None:
@@ -275,4 +357,5 @@ class SmartStart:
                 setattr(self, name, state[name].clone())
         self.generator.set_state(state["generator"])
         self.decisions = state["decisions"]
+        self.greedy_path_decisions = state.get("greedy_path_decisions", 0)  # absent before smart_start.greedy_path
         self.frontier.sync()

@@ -175,7 +175,7 @@ class MazeCollector:
         self.ep_new_moves_after_ss[copies] = 0
         if self.smart_start is not None:
             obs, goals = self._td.get("observation"), self._td.get("desired_goal")
-            self.smart_start.start_episodes(copies, obs, goals, self.agent.q_values)
+            self.smart_start.start_episodes(copies, obs, goals, self.agent.q_values, self.agent.greedy_q_values)
             steps = self.smart_start.frontier_steps(copies, goals)
             self.ss_frontier_steps = torch.where(copies, steps, self.ss_frontier_steps)
 

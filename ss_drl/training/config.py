@@ -250,6 +250,12 @@ def _trainer_and_learner(cfg: DictConfig) -> None:
     _choice(cfg, "smart_start.explore", SmartStart.EXPLORE)
     _boolean(cfg, "smart_start.explore_after_goal")
     _boolean(cfg, "smart_start.explore_from_start")
+    _boolean(cfg, "smart_start.greedy_path")
+    if cfg.smart_start.greedy_path and float(cfg.env.get("slip", 0) or 0) > 0:
+        raise ConfigError(
+            "smart_start.greedy_path: true needs deterministic moves (env.slip is "
+            f"{cfg.env.slip!r}): it walks one observed successor per move"
+        )
     if name == "frontier":
         _frontier_run(cfg)
     # logger

@@ -196,6 +196,9 @@ def make_smart_start(
         explore_after_goal=ss.explore_after_goal,
         guided_limit=guided_limit(ss, float(cfg.env.slip)),
         explore_from_start=ss.explore_from_start,
+        greedy_path=ss.greedy_path,
+        cells=state_cells(maze),
+        max_steps=cfg.env.max_steps,
     )
 
 
@@ -474,6 +477,7 @@ class Trainer:
             "env_steps_per_s": round(self.collector.env_steps / max(wall, 1e-9), 1),
             "updates_per_s": round(self.agent.updates / max(wall, 1e-9), 1),
             "smart_start_decisions": 0 if self.smart_start is None else self.smart_start.decisions,
+            "greedy_path_decisions": 0 if self.smart_start is None else self.smart_start.greedy_path_decisions,
             "bounds_in_force": list(getattr(getattr(self.agent, "td_target", None), "in_force", [])),
             "config": self.resolved,
         }
