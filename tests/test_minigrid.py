@@ -370,6 +370,25 @@ def test_a_minigrid_run_resumes_as_if_uninterrupted(tmp_path, capsys):
     assert "(optimal 11)" in capsys.readouterr().out and (tmp_path / "greedy.png").stat().st_size > 0
 
 
+def test_greedy_path_guided_phase_ends_in_the_very_state_not_its_cell():
+    """Smart Start's guided phase ends in any state of S_ss's cell (theta 0), but one sent to an untried greedy move
+    (``greedy_path``) ends only in S_ss itself: the move was untried in that direction, with those doors."""
+    from ss_drl.smart_start import Planner, SmartStart
+
+    task = minigrid_task(DOORKEY, 0)
+    start = task.start_state
+    same_cell = [s for s in range(task.n_states) if task.state_cell[s] == task.state_cell[start] and s != start]
+    assert same_cell  # the start cell in another direction
+    ss = SmartStart(
+        task, CountModel(task.n_states, task.n_actions), 1, eta=1.0, c_ss=0.1, w_q=0.0, theta=0,
+        planner=Planner(task.width, cells=task.cells), generator=torch.Generator().manual_seed(0), cells=task.cells,
+    )  # fmt: skip
+    other, target = torch.tensor([same_cell[0]]), torch.tensor([start])
+    assert ss.arrived(other, target, torch.tensor([False])).tolist() == [True]
+    assert ss.arrived(other, target, torch.tensor([True])).tolist() == [False]
+    assert ss.arrived(target, target, torch.tensor([True])).tolist() == [True]
+
+
 @pytest.mark.slow
 def test_greedy_path_runs_on_minigrid_and_resumes_as_if_uninterrupted(tmp_path):
     """``smart_start.greedy_path`` on DoorKey-5x5 (states that are not cells; the guided phase then ends in the very
