@@ -330,6 +330,27 @@ def test_greedy_path_without_an_untried_move_leaves_smart_start_as_it_is(policy,
     assert ss.first_move.tolist() == [-1]
 
 
+def test_greedy_path_ends_at_a_move_the_count_model_has_not_counted_yet():
+    """A move tried in the batch being collected is tried (the frontier saw it) but has no successor in the count
+    model yet: the walk ends there, with no untried move found (the next batch boundary counts it). The hook has a
+    third row here, so that G is not the maze's last cell, which is known (a successor of -1 must not be read as it)."""
+    maze = parse_maze(HOOK + "......\n")
+    model = _goal_reached_model(maze, untried_at_4=(D,))
+    assert _greedy_path_start(maze, model, {**ROUTE, 4: D}).first_move.tolist() == [D]  # as in the test above ...
+    ss = SmartStart(
+        maze, model, 1, eta=1.0, c_ss=2.0, w_q=0.0, theta=0, planner=Planner(maze.width, gamma=0.99),
+        generator=torch.Generator().manual_seed(0), greedy_path=True,
+    )  # fmt: skip
+    ss.frontier.observe(torch.tensor([4]), torch.tensor([D]), torch.tensor([4]))  # ... but 4's down was just tried
+    ss.frontier.observe(torch.tensor([16]), torch.tensor([R]), torch.tensor([17]))  # and the last cell is known
+    one = torch.ones(1, dtype=torch.bool)
+    ss.end_episodes(one)
+    online = lambda s, g: torch.zeros(g.numel(), s.numel(), 4)  # noqa: E731
+    greedy = _greedy({**ROUTE, 4: D})
+    ss.start_episodes(one, torch.tensor([maze.start_cell]), torch.tensor([maze.goal_cell]), online, greedy)
+    assert ss.first_move.tolist() == [-1] and ss.target.tolist() == [5]  # the usual UCB choice
+
+
 def test_greedy_path_waits_for_the_goal():
     """Before G has been reached, the option does nothing (the exploration options decide S_ss)."""
     maze = _maze()

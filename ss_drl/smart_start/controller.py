@@ -217,7 +217,8 @@ class SmartStart:
         """Per start and goal (B,): the first state on the greedy path from the start whose greedy move was never
         tried, and that move; (-1, -1) where the path reaches the goal, repeats a state or runs ``max_steps`` moves
         over tried ones first. The path takes the greedy action of ``greedy_q_values`` in each state and the
-        count model's observed successor of each tried move (deterministic moves)."""
+        count model's observed successor of each tried move (deterministic moves); it also ends at a move tried in
+        the batch being collected, whose successor the count model has not counted yet."""
         known = torch.nonzero(self.frontier.known).squeeze(-1)  # every state the walk can be in, S included
         known = torch.unique(torch.cat((known, starts)))
         greedy = torch.full((goals.numel(), self.counts.n_states), -1, dtype=torch.int64)
@@ -236,7 +237,7 @@ class SmartStart:
                     states[i], moves[i] = s, a
                     break
                 s = successor[s][a]
-                if cell_of[s] == goal or s in seen:
+                if s < 0 or cell_of[s] == goal or s in seen:  # s < 0: tried in this batch, not counted yet
                     break
                 seen.add(s)
         return states, moves
