@@ -291,3 +291,21 @@ def test_resume_past_a_truncated_checkpoint_equals_an_uninterrupted_run(tmp_path
     final, before_final = ckpt.read(cut / CHECKPOINT_FILE), ckpt.read(cut / CHECKPOINT_PREV_FILE)
     assert final["collector"]["env_steps"] == 1200
     assert prev_steps < before_final["collector"]["env_steps"] <= 1200
+
+
+# --- a run written before a config key was added --------------------------------------------------------------------
+def test_a_run_written_before_greedy_path_resumes_as_it_ran(tmp_path):
+    """A checkpoint whose config lacks ``smart_start.greedy_path`` (written before the option existed) resumes with it
+    off, as that run ran, and equals an uninterrupted run; resuming it with the option on is refused in one line."""
+    full, cut = tmp_path / "full", tmp_path / "cut"
+    Trainer(compose_cfg(*RUN), full).train()
+    crash_after_save(Trainer(compose_cfg(*RUN), cut), 2)
+    for name in (CHECKPOINT_FILE, CHECKPOINT_PREV_FILE):
+        saved = ckpt.read(cut / name)
+        del saved["config"]["smart_start"]["greedy_path"]
+        torch.save(saved, cut / name)
+    with pytest.raises(ConfigError, match=r"^trainer.resume: config 'smart_start' differs from the checkpoint's"):
+        Trainer(compose_cfg(*RUN, "trainer.resume=true", "smart_start.greedy_path=true"), cut).train()
+    Trainer(compose_cfg(*RUN, "trainer.resume=true"), cut).train()
+    for file in (EPISODES_FILE, EVAL_FILE, TRAIN_FILE):
+        assert rows_without_wall_clock(cut / file) == rows_without_wall_clock(full / file), file

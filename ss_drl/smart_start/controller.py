@@ -66,9 +66,9 @@ class SmartStart:
         guided_limit: the guided phase also ends after this many times the planner's route length (at least one
             step); None: no limit. Under slips the route is walked from wherever the agent lands, and a run of bad
             luck must not keep the policy from acting for the rest of the episode.
-        greedy_path: once the goal has been reached, S_ss is the first untried move on the evaluated greedy path
-            from the episode's start, where there is one (:meth:`untried_on_greedy_path`), and that move is taken
-            on arrival.
+        greedy_path: once the goal has been reached, S_ss is the state of the first untried move on the evaluated
+            greedy path from the episode's start, where there is one (:meth:`untried_on_greedy_path`), and that
+            move is taken on arrival.
         cells: a state's cell, to compare it with the goal (None: states are cells, as in a maze).
         max_steps: the longest greedy walk :meth:`untried_on_greedy_path` takes (the episode's step budget).
     """

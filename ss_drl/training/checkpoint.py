@@ -304,8 +304,18 @@ def refuse_overwrite(cfg, run_dir: Path, key: str = "hydra.run.dir") -> None:
     )
 
 
+#: Config keys added after runs of this checkpoint format were written, each with the value that reproduces what those
+#: runs did: a checkpoint whose config lacks one resumes as if it held that value (and is refused if the resumption
+#: sets another).
+ADDED_KEYS = {("smart_start", "greedy_path"): False}
+
+
 def check_compatible(saved: dict, current: dict) -> None:
     """Resuming with a different maze, agent, HER or Smart Start setup, or seed, would mix two runs: refuse it."""
+    saved = copy.deepcopy(saved)
+    for (section, key), value in ADDED_KEYS.items():
+        if isinstance(saved.get(section), dict):
+            saved[section].setdefault(key, value)
     for key in sorted(set(saved) | set(current)):
         if key in RESUMABLE_CHANGES:
             continue
