@@ -381,7 +381,7 @@ def test_greedy_path_guided_phase_ends_in_the_very_state_not_its_cell():
     assert same_cell  # the start cell in another direction
     ss = SmartStart(
         task, CountModel(task.n_states, task.n_actions), 1, eta=1.0, c_ss=0.1, w_q=0.0, theta=0,
-        planner=Planner(task.width, cells=task.cells), generator=torch.Generator().manual_seed(0), cells=task.cells,
+        planner=Planner(task.width, cells=task.cells), generator=torch.Generator().manual_seed(0),
     )  # fmt: skip
     other, target = torch.tensor([same_cell[0]]), torch.tensor([start])
     assert ss.arrived(other, target, torch.tensor([False])).tolist() == [True]

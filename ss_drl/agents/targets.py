@@ -254,6 +254,13 @@ class _Ceiling(_GoalDistance, Bound):
     _walls: np.ndarray | None = None
     _distance: np.ndarray | None = None
 
+    def _observed(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(s, a, s') of every transition the count model has seen, for :meth:`known_walls`."""
+        n, a_n = self.counts.n_states, self.counts.n_actions
+        keys = self.counts.keys.numpy()
+        sa = keys // n
+        return sa // a_n, sa % a_n, keys % n
+
     def _compute(self) -> torch.Tensor:
         walls = self.known_walls()
         if self._distance is None or not np.array_equal(walls, self._walls):  # a new wall: search again
@@ -306,13 +313,10 @@ class DistanceCeiling(_Ceiling):
 
     def known_walls(self) -> np.ndarray:
         """(S,) bool: cells the count model has seen a move bump into."""
-        n, a_n = self.counts.n_states, self.counts.n_actions
-        keys = self.counts.keys.numpy()
-        sa, s2 = keys // n, keys % n
-        s, a = sa // a_n, sa % a_n
+        s, a, s2 = self._observed()
         target = self.neighbour[s, a]
         bumped = (s2 == s) & (target >= 0)
-        walls = np.zeros(n, dtype=bool)
+        walls = np.zeros(self.counts.n_states, dtype=bool)
         walls[target[bumped]] = True
         return walls
 
@@ -391,10 +395,7 @@ class TurnDistanceCeiling(_Ceiling):
 
     def known_walls(self) -> np.ndarray:
         """(cells,) bool: cells a tried forward was seen to stay in front of (doors, keys and balls excepted)."""
-        n, a_n = self.counts.n_states, self.counts.n_actions
-        keys = self.counts.keys.numpy()
-        sa, s2 = keys // n, keys % n
-        s, a = sa // a_n, sa % a_n
+        s, a, s2 = self._observed()
         ahead = self.move[self.node[s], self.FORWARD]
         bumped = (a == self.FORWARD) & (self.node[s2] == self.node[s]) & (ahead >= 0)
         walls = np.zeros(self.openable.size, dtype=bool)
@@ -691,7 +692,7 @@ class TDTarget:
 # --- building the target from the settings ------------------------------------------------------------------------
 
 
-def ceiling_class(holds: frozenset[str] = MAZE) -> type[_Ceiling]:
+def ceiling_class(holds: frozenset[str]) -> type[_Ceiling]:
     """The distance ceiling of an environment that meets ``holds``: :class:`TurnDistanceCeiling` where the agent
     turns and moves forward (MiniGrid), else :class:`DistanceCeiling` (four moves)."""
     return TurnDistanceCeiling if "grid_turns" in holds else DistanceCeiling

@@ -69,7 +69,6 @@ class SmartStart:
         greedy_path: once the goal has been reached, S_ss is the state of the first untried move on the evaluated
             greedy path from the episode's start, where there is one (:meth:`untried_on_greedy_path`), and that
             move is taken on arrival.
-        cells: a state's cell, to compare it with the goal (None: states are cells, as in a maze).
         max_steps: the longest greedy walk :meth:`untried_on_greedy_path` takes (the episode's step budget).
     """
 
@@ -95,7 +94,6 @@ class SmartStart:
         guided_limit: float | None = None,
         explore_from_start: bool = False,
         greedy_path: bool = False,
-        cells=None,
         max_steps: int = 1000,
     ):
         if select not in self.SELECT or explore not in self.EXPLORE:
@@ -106,7 +104,7 @@ class SmartStart:
         self.select, self.explore, self.explore_after_goal = select, explore, bool(explore_after_goal)
         self.guided_limit = None if guided_limit is None else float(guided_limit)
         self.explore_from_start = bool(explore_from_start)
-        self.greedy_path, self.cells, self.max_steps = bool(greedy_path), cells, int(max_steps)
+        self.greedy_path, self.max_steps = bool(greedy_path), int(max_steps)
         self.frontier = frontier if frontier is not None else Frontier(counts)
         n = int(num_envs)
         self.episodes = torch.zeros(n, dtype=torch.int64)  # finished episodes per copy
@@ -226,7 +224,7 @@ class SmartStart:
         n = self.counts.n_states
         successor = self.counts.successors().view(n, self.counts.n_actions).tolist()
         tried = self.frontier.tried.tolist()
-        cell_of = range(n) if self.cells is None else self.cells(torch.arange(n)).tolist()
+        cell_of = self.maze.cells(torch.arange(n)).tolist()
         states = torch.full((goals.numel(),), -1, dtype=torch.int64)
         moves = torch.full((goals.numel(),), -1, dtype=torch.int64)
         for i, (s, goal, policy) in enumerate(zip(starts.tolist(), goals.tolist(), greedy.tolist())):

@@ -251,7 +251,7 @@ def _trainer_and_learner(cfg: DictConfig) -> None:
     _boolean(cfg, "smart_start.explore_after_goal")
     _boolean(cfg, "smart_start.explore_from_start")
     _boolean(cfg, "smart_start.greedy_path")
-    if cfg.smart_start.greedy_path and float(cfg.env.get("slip", 0) or 0) > 0:
+    if cfg.smart_start.greedy_path and "deterministic" not in environment_assumptions(cfg.env):
         raise ConfigError(
             "smart_start.greedy_path: true needs deterministic moves (env.slip is "
             f"{cfg.env.slip!r}): it walks one observed successor per move"

@@ -197,7 +197,6 @@ def make_smart_start(
         guided_limit=guided_limit(ss, float(cfg.env.slip)),
         explore_from_start=ss.explore_from_start,
         greedy_path=ss.greedy_path,
-        cells=state_cells(maze),
         max_steps=cfg.env.max_steps,
     )
 
