@@ -299,6 +299,13 @@ def test_wrong_type(override, key, value):
     assert "expected" in message
 
 
+@pytest.mark.parametrize("hidden", ["[]", "[0]", "[64,-1]", "[true]", "64"])
+def test_the_trunk_needs_at_least_one_layer_of_positive_width(hidden):
+    """``agent.hidden=[]`` passed the check and then crashed at the first evaluation (the trunk had no first layer)."""
+    message = assert_config_error(compose_cfg("easy_ss_her", [f"agent.hidden={hidden}"]), "agent.hidden", "")
+    assert "expected a non-empty list of positive integers" in message
+
+
 @pytest.mark.parametrize("override", ["env.slip=nan", "agent.lr=nan", "agent.tau=inf", "smart_start.c_ss=-inf"])
 def test_a_number_that_is_not_finite_is_refused(override):
     """NaN passed every range check (all comparisons with it are false): env.slip=nan reached the trainer and raised

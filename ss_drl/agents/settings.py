@@ -104,10 +104,10 @@ def _typed(key: str, value, kind):
         if not isinstance(value, numbers.Real) or isinstance(value, bool):
             raise ValueError(f"{key}: expected a number, got {value!r} ({type(value).__name__})")
         return float(value)
-    if typing.get_origin(kind) is tuple:  # tuple[int, ...]: a list of positive integers
+    if typing.get_origin(kind) is tuple:  # tuple[int, ...]: a non-empty list of positive integers (the trunk's widths)
         ok = not isinstance(value, (str, bytes)) and hasattr(value, "__iter__")
         items = list(value) if ok else []
-        if not ok or not all(isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in items):
-            raise ValueError(f"{key}: expected a list of positive integers, got {value!r}")
+        if not items or not all(isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in items):
+            raise ValueError(f"{key}: expected a non-empty list of positive integers, got {value!r}")
         return tuple(items)
     raise TypeError(f"{key}: no check for {kind!r}")
