@@ -251,14 +251,57 @@ def _did_you_mean(name: str, names, prefix: str = "") -> str:
     return f"did you mean {' or '.join(prefix + n for n in near)}?" if near else ""
 
 
+def _default_groups(conf: Path) -> set[str]:
+    """The config groups that ``conf/config.yaml``'s defaults list chooses (``env``, ``agent``, ...): the others
+    (``experiment``, ``maze``, ...) are added with ``+``."""
+    defaults = OmegaConf.load(conf / "config.yaml").get("defaults", [])
+    return {str(key).split("@", 1)[0] for entry in defaults if isinstance(entry, DictConfig) for key in entry}
+
+
+def check_overrides_parse(argv: list[str]) -> None:
+    """Refuse a command-line override that Hydra's grammar cannot read, e.g. ``agent.hidden=[1,2`` (:class:`~ss_drl.
+    training.config.ConfigError`, one line naming it), before Hydra reports it in three lines with exit code 1."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import OverrideParseException
+
+    from ss_drl.training.config import ConfigError
+
+    if any(arg.split("=", 1)[0] in _HYDRA_ONLY for arg in argv):
+        return
+    parser = OverridesParser.create()
+    for arg in argv:
+        if arg.startswith("-") or "=" not in arg:
+            continue
+        try:
+            parser.parse_overrides([arg])
+        except OverrideParseException as exc:
+            reason = next((line.strip() for line in str(exc).splitlines() if line.strip()), "bad syntax")
+            raise ConfigError(
+                f"{arg}: not an override Hydra can read ({reason}; the grammar: "
+                "https://hydra.cc/docs/advanced/override_grammar/basic/)"
+            ) from None
+
+
 def check_group_choices(argv: list[str], conf: Path) -> None:
     """Refuse a config group choice on the command line that names no file, e.g. ``+experiment=no_such_name``
     (:class:`~ss_drl.training.config.ConfigError`, one line naming the group and the nearest choices), before Hydra
     composes the config: Hydra's own report runs to one line per shipped experiment. Sweep lists (``a,b``) are
-    checked item by item; sweep functions (``glob(...)``, ``range(...)``) and interpolations are left to Hydra."""
+    checked item by item; sweep functions (``glob(...)``, ``range(...)``) and interpolations are left to Hydra.
+    Refused too, where Hydra would report them in three lines with exit code 1: a group outside the defaults list
+    chosen without ``+`` (``experiment=easy_ss``), and a group chosen twice."""
     from ss_drl.training.config import ConfigError
 
-    for _, value, group in _command_line(argv, conf) or ():
+    chosen: dict[str, str] = {}
+    for key, value, group in _command_line(argv, conf) or ():
+        if group is not None and "@" not in key:
+            if group in chosen:
+                raise ConfigError(
+                    f"{group}: chosen twice ({chosen[group]} and {key}={value}); give it once, or sweep both with "
+                    f"-m +{group}={chosen[group].split('=', 1)[1]},{value}"
+                )
+            chosen[group] = f"{key}={value}"
+            if not key.startswith("+") and group not in _default_groups(conf):
+                raise ConfigError(f"{group}: not in the default config; choose it with +{group}={value}")
         if group is None or any(c in value for c in _EXPANDED):
             continue  # a value (agent.lr=...), or a choice Hydra expands
         for choice in (v.strip().strip("'\"") for v in value.split(",")):
@@ -275,12 +318,13 @@ def check_group_choices(argv: list[str], conf: Path) -> None:
 
 def check_override_keys(argv: list[str], conf: Path) -> None:
     """Refuse an override of a key the config does not have, e.g. ``agent.lrr=0.1`` (:class:`~ss_drl.training.config.
-    ConfigError`, one line naming the key, the nearest keys beside it, and ``+key=...`` to add one), before Hydra
-    composes the config: Hydra refuses it too, in seven lines and with exit code 1. The config is composed with the
-    command line's group choices; in a sweep, once per combination of the swept groups' choices (a key that one of
-    them lacks is named with that choice). Everything else is left to Hydra: ``+``/``++``/``~`` overrides, Hydra's own
-    keys and options, sweep functions, interpolations, another search path, and a command line Hydra cannot compose.
-    """
+    ConfigError`, one line naming the key and the nearest keys beside it), before Hydra composes the config: Hydra
+    refuses it too, in seven lines and with exit code 1. Refused as well: a key added with ``+`` or ``++``, which
+    Hydra would accept and no run would read (every setting is in conf/), and ``+key`` for a key the config has. The
+    config is composed with the command line's group choices; in a sweep, once per combination of the swept groups'
+    choices (a key that one of them lacks is named with that choice, and the sweep is refused before any job). Left
+    to Hydra: ``~`` removals, Hydra's own keys and options, sweep functions choosing a group, interpolations, another
+    search path, and a command line Hydra cannot compose."""
     import itertools
 
     from hydra import compose, initialize_config_dir
@@ -295,7 +339,7 @@ def check_override_keys(argv: list[str], conf: Path) -> None:
             if any(c in value for c in _EXPANDED):
                 return  # a sweep function or an interpolation choosing a group: Hydra's to expand
             groups.append([f"{key}={choice}" for choice in value.split(",")])
-        elif not key.startswith("+"):
+        else:
             keys.append(key)
     combinations = list(itertools.product(*groups))
     if not keys or len(combinations) > _MAX_COMBINATIONS:
@@ -308,8 +352,11 @@ def check_override_keys(argv: list[str], conf: Path) -> None:
         except (HydraException, OmegaConfBaseException):
             return  # a command line Hydra cannot compose: its own report says why
         for key in keys:
-            if OmegaConf.select(cfg, key, default=_ABSENT, throw_on_resolution_failure=False) is _ABSENT:
-                raise ConfigError(_missing_key(cfg, key, combination if sweep else None))
+            name = key.lstrip("+")
+            if OmegaConf.select(cfg, name, default=_ABSENT, throw_on_resolution_failure=False) is _ABSENT:
+                raise ConfigError(_missing_key(cfg, name, combination if sweep else None))
+            if key.startswith("+") and not key.startswith("++"):  # Hydra: "Could not append ..., already at ..."
+                raise ConfigError(f"{name}: already in the config; set it without the +: {name}=...")
 
 
 def _missing_key(cfg: DictConfig, key: str, combination) -> str:
@@ -324,7 +371,9 @@ def _missing_key(cfg: DictConfig, key: str, combination) -> str:
         return f"{key}: no such key in the config of the sweep's {' '.join(combination)}" + (
             f"; {hint}" if hint else ""
         )
-    return f"{key}: no such key in the config; {hint + ' ' if hint else ''}to add a new key, use +{key}=..."
+    return f"{key}: no such key in the config" + (
+        f"; {hint}" if hint else " (the README's Configuration table lists them)"
+    )
 
 
 def train_main() -> None:
@@ -335,6 +384,7 @@ def train_main() -> None:
         conf = config_dir()
     except FileNotFoundError as exc:
         sys.exit(str(exc))
+    _refuse_on(lambda: check_overrides_parse(sys.argv[1:]), ConfigError)
     _refuse_on(lambda: check_group_choices(sys.argv[1:], conf), ConfigError)
     _refuse_on(lambda: check_override_keys(sys.argv[1:], conf), ConfigError)
     hydra.main(config_path=str(conf), config_name="config", version_base="1.3")(_train)()

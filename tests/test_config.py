@@ -576,7 +576,19 @@ def test_an_override_of_a_key_the_config_lacks_is_refused_naming_the_nearest():
     refused = _refusal(check_override_keys)
 
     assert refused("+experiment=easy_ss_her", "agent.lrr=0.1") == (
-        "agent.lrr: no such key in the config; did you mean agent.lr? to add a new key, use +agent.lrr=..."
+        "agent.lrr: no such key in the config; did you mean agent.lr?"
+    )
+    # A key added with + or ++ is refused in every section: Hydra accepts it, and no run would read it (the audit of
+    # session 47 found +trainer.total_env_step=500 running to the end with the default budget, exit 0).
+    assert refused("+experiment=easy_ss_her", "+trainer.total_env_step=500") == (
+        "trainer.total_env_step: no such key in the config; did you mean trainer.total_env_steps?"
+    )
+    for added in ("+env.foo=1", "++smart_start.foo=1", "+her.foo=1", "+logger.foo=1", "+agent.lrr=0.1"):
+        assert refused("+experiment=easy_ss_her", added).startswith(f"{added.lstrip('+').split('=')[0]}: no such key")
+    assert refused("+foo=1") == "foo: no such key in the config (the README's Configuration table lists them)"
+    # +key for a key the config has: Hydra's "Could not append to config", in one line.
+    assert refused("+experiment=easy_ss_her", "+trainer.total_env_steps=5") == (
+        "trainer.total_env_steps: already in the config; set it without the +: trainer.total_env_steps=..."
     )
     assert refused("agentt.lr=0.1") == "agentt.lr: no such key in the config (agentt is not a section of it)"
     assert refused("+experiment=easy_ss_her", "trainer.eval_interva=5").startswith(
@@ -585,7 +597,7 @@ def test_an_override_of_a_key_the_config_lacks_is_refused_naming_the_nearest():
     # Checked against the config of the groups chosen: the tabular agent has alpha, the DQN none.
     assert refused("+experiment=easy_ss_her", "agent.alpha=0.5").startswith("agent.alpha: no such key in the config")
     # A sweep is checked once per combination of its groups' choices, whatever their order, naming the one that
-    # lacks the key (and no "+key" advice: the other choices have it).
+    # lacks the key.
     for order in (["easy_ss_her", "easy_tabular_ss"], ["easy_tabular_ss", "easy_ss_her"]):
         assert refused("-m", f"+experiment={','.join(order)}", "agent.alpha=0.5") == (
             "agent.alpha: no such key in the config of the sweep's +experiment=easy_ss_her"
@@ -598,7 +610,7 @@ def test_an_override_of_a_key_the_config_lacks_is_refused_naming_the_nearest():
         ["+experiment=easy_ss_her", "agent=tabular", "agent.alpha=0.5", "seed=range(3)"],
         ["+experiment=easy_ss_her", "logger=wandb", "logger.mode=online", "agent.lr=0.01"],
         ["-m", "+experiment=easy_ss,easy_ss_her", "agent.hidden=[64,64]", "env.layout=x.txt"],
-        ["+experiment=easy_ss_her", "+agent.new_key=1", "++trainer.other=2", "~trainer.resume"],  # Hydra's to check
+        ["+experiment=easy_ss_her", "++trainer.eval_interval=2", "~trainer.resume"],  # ++ of a key it has; removal
         ["hydra.run.dir=/tmp/x=y", "hydra.launcher.n_jobs=2"],  # Hydra's own keys
         ["+experiment@x=glob(*)", "agent.lrr=1"],  # a group chosen by a sweep function: Hydra expands it
         ["--config-dir", "/elsewhere", "agent.lrr=1"],  # another search path: Hydra's to check
@@ -617,6 +629,16 @@ def test_an_unknown_group_choice_is_refused_naming_the_group():
     assert refused("agent=dqn_bound").endswith("did you mean dqn_bounded?")
     assert "'medum_ss'" in refused("-m", "+experiment=easy_ss,medum_ss")  # sweep lists: item by item
     assert "the choices: " in refused("+experiment=easy_ss", "her=sometimes")  # a small group lists its choices
+    # Hydra's three-line reports (exit 1) for a group outside the defaults list chosen without +, and a group chosen
+    # twice, in one line each.
+    assert refused("experiment=easy_ss_her") == (
+        "experiment: not in the default config; choose it with +experiment=easy_ss_her"
+    )
+    assert refused("+experiment=easy_ss_her", "+experiment=medium_ss_her") == (
+        "experiment: chosen twice (+experiment=easy_ss_her and +experiment=medium_ss_her); give it once, or sweep "
+        "both with -m +experiment=easy_ss_her,medium_ss_her"
+    )
+    assert refused("maze=easy").startswith("maze: not in the default config")
     for ok in (
         ["+experiment=easy_ss_her_bounded", "agent=dqn", "agent.lr=0.01", "env.layout=x.txt"],
         ["-m", "+experiment=easy_ss,easy_ss_her", "seed=range(3)", "+experiment@x=glob(*)"],
@@ -624,6 +646,22 @@ def test_an_unknown_group_choice_is_refused_naming_the_group():
         ["--config-dir", "/elsewhere", "+experiment=only_there"],  # another search path: Hydra's to check
     ):
         check_group_choices(ok, CONF)
+
+
+def test_an_override_hydra_cannot_read_is_refused_in_one_line():
+    from ss_drl.cli import check_overrides_parse
+
+    refused = _refusal(lambda argv, conf: check_overrides_parse(argv))
+    assert refused("+experiment=easy_ss_her", "agent.hidden=[1,2") == (
+        "agent.hidden=[1,2: not an override Hydra can read (no viable alternative at input '[1,2'; the grammar: "
+        "https://hydra.cc/docs/advanced/override_grammar/basic/)"
+    )
+    assert refused("seed=range(3").startswith("seed=range(3: not an override Hydra can read (")
+    for ok in (
+        ["-m", "+experiment=easy_ss,easy_ss_her", "seed=range(3)", "agent.hidden=[64,64]", "~trainer.resume"],
+        ["hydra.run.dir=/tmp/x=y", "-cd", "/elsewhere"],  # another search path: Hydra's to check
+    ):
+        check_overrides_parse(ok)
 
 
 # --- the README's configuration reference -----------------------------------------------------------------------------
