@@ -257,6 +257,34 @@ def test_resume_with_both_checkpoints_damaged_is_refused_and_changes_nothing(tmp
     assert snapshot(run) == before
 
 
+def test_resume_with_a_budget_below_the_steps_run_is_refused_and_changes_nothing(tmp_path):
+    """The audit of session 47 resumed a finished run of 1500 env steps with trainer.total_env_steps=500: it exited 0
+    and rewrote checkpoint.pt and summary.json, whose config then said 500 beside 1500 env steps. Now: one line, exit
+    2, nothing changed; the trainer refuses the same; a budget of at least the steps run passes."""
+    run = tmp_path / "run"
+    run.mkdir()
+    torch.save(state(9, task_config(compose_cfg(*RUN))), run / CHECKPOINT_FILE)  # 900 env steps run
+    before = snapshot(run)
+    result = subprocess.run(
+        _train_cmd(run, "trainer.resume=true", "trainer.total_env_steps=500"),
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=300,
+    )
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().splitlines() == [
+        f"ss-drl: config error: trainer.total_env_steps: 500 is below the 900 env steps {run / CHECKPOINT_FILE} has "
+        "run; continue it with a budget of at least 900"
+    ]
+    assert snapshot(run) == before
+    with pytest.raises(ConfigError, match=r"^trainer.total_env_steps: 899 is below the 900 env steps "):
+        Trainer(compose_cfg(*RUN, "trainer.resume=true", "trainer.total_env_steps=899"), run).train()
+    assert snapshot(run) == before
+    for budget in (900, 5000):
+        check_resume(compose_cfg(*RUN, "trainer.resume=true", f"trainer.total_env_steps={budget}"), run)
+
+
 @pytest.mark.slow  # two runs of 1200 env steps
 def test_resume_past_a_truncated_checkpoint_equals_an_uninterrupted_run(tmp_path):
     """A run of 1200 env steps crashes right after its third checkpoint (about 900 env steps), whose file is then

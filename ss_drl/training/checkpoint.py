@@ -169,8 +169,7 @@ def resume_from(run_dir: Path, mmap: bool = False) -> Resumption:
         if written_before_rename(state):
             other += f": continue it with a checkout of {LAST_OLD_COMMIT}, or start a new run"
         raise ConfigError(f"trainer.resume: {problem}, and {other}")
-    collector = state.get("collector")
-    at = collector.get("env_steps") if isinstance(collector, dict) else None
+    at = env_steps_done(state)
     where = "" if at is None else f" (env step {at})"
     warning = f"trainer.resume: {problem}; continuing from {prev}{where}, the checkpoint before it"
     return Resumption(prev, state, warning)
@@ -218,8 +217,30 @@ def check_resume(cfg: DictConfig, run_dir: Path) -> None:
         resumption = resume_from(run_dir, mmap=True)
     except FileNotFoundError as exc:
         raise ConfigError(str(exc)) from None
-    check_state(resumption.state, resumption.path, "trainer.resume: ")
-    check_compatible(resumption.state["config"], task_config(cfg))
+    check_continuable(resumption.state, resumption.path, task_config(cfg))
+
+
+def check_continuable(state: dict, path: Path, current: dict) -> None:
+    """A checkpoint a run with the config ``current`` can continue: one the trainer can read (:func:`check_state`),
+    written with the same config (:func:`check_compatible`), and not past ``trainer.total_env_steps``: a budget
+    below the env steps already run would rewrite a finished run's outputs under a budget it did not run to (the
+    last quarter that decides "learned" is the budget's). :class:`ConfigError` (one line) otherwise."""
+    check_state(state, path, "trainer.resume: ")
+    check_compatible(state["config"], current)
+    done = env_steps_done(state)
+    budget = (current.get("trainer") or {}).get("total_env_steps")
+    if done is not None and isinstance(budget, int) and budget < done:
+        raise ConfigError(
+            f"trainer.total_env_steps: {budget} is below the {done} env steps {path} has run; continue it with a "
+            f"budget of at least {done}"
+        )
+
+
+def env_steps_done(state: dict) -> int | None:
+    """The env steps a checkpoint's run had taken (None when its collector state does not say)."""
+    collector = state.get("collector")
+    at = collector.get("env_steps") if isinstance(collector, dict) else None
+    return at if isinstance(at, int) else None
 
 
 #: What the trainer reads from a checkpoint of this :data:`FORMAT` (``eval_rng``, ``last_success_rate`` and

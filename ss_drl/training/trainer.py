@@ -532,8 +532,7 @@ class Trainer:
             print(f"ss-drl: warning: {resumption.warning}", file=sys.stderr)
             self._keep_previous = False  # checkpoint.pt is damaged: the next save replaces it, keeping prev
         state = resumption.state
-        ckpt.check_state(state, resumption.path, "trainer.resume: ")
-        ckpt.check_compatible(state["config"], self.resolved)
+        ckpt.check_continuable(state, resumption.path, self.resolved)
         self.agent.load_state_dict(state["agent"])
         self.counts.load_state_dict(state["counts"])
         if self.smart_start is not None:
