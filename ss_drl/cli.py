@@ -182,6 +182,8 @@ def _train(cfg: DictConfig):
         (run_dir / FAILED_FILE).write_text(traceback.format_exc())
         print(f"ss-drl: job failed, see {run_dir / FAILED_FILE}", file=sys.stderr)
         return None
+    if _resume_dir(cfg) is not None:  # the run continued in the directory trainer.resume named: Hydra's own
+        _remove_hydra_files()  # directory for it (outputs/<experiment>/...) holds only Hydra's files
     first = summary["first_goal_env_step"]
     goal = f"first goal at {first}" if first is not None else "G never reached"
     print(

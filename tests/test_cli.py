@@ -211,6 +211,26 @@ def test_a_refusal_inside_the_job_removes_what_hydra_wrote(tmp_path):
     assert list(cwd.iterdir()) == [], f"a refused run left {sorted(p.name for p in cwd.rglob('*'))} behind"
 
 
+def test_a_resume_into_a_named_directory_leaves_nothing_in_the_working_directory(tmp_path):
+    """``trainer.resume=<dir>`` continues the run in ``<dir>``; the directory Hydra made for it under the working
+    directory (outputs/<experiment>/seed<seed>/<time>, holding only Hydra's files) is removed when the run ends (the
+    audit of session 47 found it left behind)."""
+    from helpers import compose_cfg
+
+    from ss_drl.training.trainer import Trainer
+
+    run = tmp_path / "run"
+    Trainer(compose_cfg("+experiment=easy_small_dqn_her", *TINY), run).train()
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    proc = train_script(
+        cwd, "+experiment=easy_small_dqn_her", *TINY, "trainer.total_env_steps=450", f"trainer.resume={run}"
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((run / SUMMARY_FILE).read_text())["env_steps"] == 450
+    assert list(cwd.iterdir()) == [], f"the resume left {sorted(p.name for p in cwd.rglob('*'))} behind"
+
+
 # --- (c) Smart Start fills the ss_* columns and draws its figure ---
 def test_smart_start_run(ss_run):
     run_dir, proc = ss_run
