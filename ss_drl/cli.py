@@ -155,6 +155,11 @@ def _run_dir(cfg: DictConfig) -> Path:
     return _resume_dir(cfg) or Path(HydraConfig.get().runtime.output_dir)
 
 
+def _sweep_dir() -> Path:
+    """The running sweep's directory (``hydra.sweep.dir``)."""
+    return Path(HydraConfig.get().sweep.dir)
+
+
 def _is_multirun() -> bool:
     from hydra.types import RunMode
 
@@ -202,6 +207,8 @@ def _fail(message: str, code: int, signum: int | None = None):
     A job stopped by ``signum`` (SIGINT/SIGTERM, its checkpoint written) stops its sweep too: its process then dies by
     that signal, so that a sweep worker never starts the next job after the user stopped the sweep (Hydra's joblib
     workers outlive a killed parent, and would otherwise run the queued jobs to the end)."""
+    if signum is not None and _is_multirun():
+        message += f"; or the whole sweep: the same command with trainer.resume=auto hydra.sweep.dir={_sweep_dir()}"
     print(f"ss-drl: {message}", file=sys.stderr)
     if _is_multirun():
         out = Path(HydraConfig.get().runtime.output_dir)

@@ -87,7 +87,9 @@ def test_sigterm_then_resume_equals_uninterrupted_run(tmp_path, env):
             pytest.fail("the run did not stop within 120 s of SIGTERM")
     err = err_path.read_text()
     assert proc.returncode == 128 + signal.SIGTERM, f"exit {proc.returncode}: not the shell's code for SIGTERM (143)"
-    assert "SIGTERM" in err and "resume" in err, err
+    # The one line says how to resume: the same command and trainer.resume=<run dir>, which is what follows.
+    assert "SIGTERM received: checkpoint written at " in err, err
+    assert err.strip().splitlines()[-1].endswith(f"resume it with the same command and trainer.resume={cut}"), err
     assert "Traceback" not in err, err
     assert (cut / CHECKPOINT_FILE).exists()
     assert not (cut / SUMMARY_FILE).exists()
@@ -96,7 +98,7 @@ def test_sigterm_then_resume_equals_uninterrupted_run(tmp_path, env):
     assert len(rows_without_wall(cut / EPISODES_FILE)) > 1  # the interrupted run flushed its episodes
 
     resumed = subprocess.run(
-        _train_cmd(cut, *env, "trainer.resume=true"), capture_output=True, text=True, cwd=ROOT, timeout=600
+        _train_cmd(cut, *env, f"trainer.resume={cut}"), capture_output=True, text=True, cwd=ROOT, timeout=600
     )
     assert resumed.returncode == 0, resumed.stderr
     for file in (EPISODES_FILE, EVAL_FILE):

@@ -179,7 +179,11 @@ def test_sigterm_stops_a_joblib_sweep_without_leaving_workers_or_starting_jobs(t
                 os.kill(pid, signal.SIGKILL)
     assert not left, f"processes {left} still ran 120 s after the sweep was sent SIGTERM"
     for job in jobs[:2]:
-        assert "SIGTERM received: checkpoint written" in (job / FAILED_FILE).read_text(), job.name
+        failed = (job / FAILED_FILE).read_text()
+        assert "SIGTERM received: checkpoint written" in failed, job.name
+        assert failed.strip().endswith(
+            f"; or the whole sweep: the same command with trainer.resume=auto hydra.sweep.dir={sweep_dir}"
+        ), failed
         assert (job / CHECKPOINT_FILE).exists() and not (job / SUMMARY_FILE).exists(), job.name
     assert not (jobs[2] / SUMMARY_FILE).exists(), "the queued job ran after the sweep was stopped"
 

@@ -320,7 +320,7 @@ class Trainer:
                     self.save_checkpoint()
                     raise TrainingInterrupted(
                         f"{self._stop_signal.name} received: checkpoint written at {collector.env_steps} env steps "
-                        f"in {self.run_dir}; resume with trainer.resume=true",
+                        f"in {self.run_dir}; resume it with the same command and trainer.resume={self.run_dir}",
                         self._stop_signal,
                     )
             if update_log.rows:
