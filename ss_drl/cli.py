@@ -67,6 +67,17 @@ class ValidateBeforeRun(Callback):
 
         _refuse_on(check, ConfigError)
 
+    def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
+        """A sweep some of whose jobs failed (each wrote ``FAILED``; a job clears its own when it starts) ends with one
+        line naming them and exit code 1, after the others ran to their end, so that a script sees it."""
+        sweep_dir = Path(config.hydra.sweep.dir)
+        jobs = sorted(p for p in sweep_dir.glob("*") if p.is_dir() and not p.name.startswith("."))
+        failed = [job for job in jobs if (job / FAILED_FILE).is_file()]
+        if failed:
+            names = ", ".join(job.name for job in failed[:3]) + (", ..." if len(failed) > 3 else "")
+            print(f"ss-drl: {len(failed)} of {len(jobs)} jobs failed ({names}): see FAILED in each", file=sys.stderr)
+            sys.exit(1)
+
 
 def _refuse_old_checkpoint(run_dir: Path) -> None:
     """The checkpoint a job in ``run_dir`` would continue from (``checkpoint.pt``, or ``checkpoint.prev.pt`` when

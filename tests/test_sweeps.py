@@ -78,7 +78,11 @@ def check_plot_skips_failed(sweep_dir: Path, failed: int) -> None:
 def test_joblib_multirun_isolates_a_failing_job_and_plot_skips_it(tmp_path):
     sweep_dir = tmp_path / "sweep"
     result = sweep(sweep_dir, "seed=0,1", "agent.gamma=0.9,1.5")  # the gamma=1.5 jobs fail validation
-    assert result.returncode == 0, result.stderr
+    # The others run to their end; then one line names the failed jobs, and the sweep exits 1 (it exited 0 before).
+    assert result.returncode == 1, result.stderr
+    assert result.stderr.strip().splitlines()[-1] == (
+        "ss-drl: 2 of 4 jobs failed (1_easy_small_dqn_her_seed0, 3_easy_small_dqn_her_seed1): see FAILED in each"
+    )
     # The joblib launcher (conf/hydra/launcher/local.yaml) ran the jobs in parallel worker processes.
     assert "Joblib.Parallel(n_jobs=-1" in result.stdout and "is launching 4 jobs" in result.stdout, result.stdout
     names = {"0_easy_small_dqn_her_seed0": 0.9, "1_easy_small_dqn_her_seed0": 1.5}
@@ -219,7 +223,8 @@ def test_submitit_local_multirun_isolates_a_failing_job(tmp_path):
     back) through its local executor: the same layout and failure isolation as the joblib sweeps."""
     sweep_dir = tmp_path / "sweep"
     result = sweep(sweep_dir, "hydra/launcher=submitit_local", "seed=0", "agent.gamma=0.9,1.5")
-    assert result.returncode == 0, result.stderr
+    assert result.returncode == 1, result.stderr
+    assert result.stderr.strip().splitlines()[-1].startswith("ss-drl: 1 of 2 jobs failed (1_easy_small_dqn_her_seed0)")
     target = "hydra_plugins.hydra_submitit_launcher.submitit_launcher.LocalLauncher"
     names = {"0_easy_small_dqn_her_seed0": 0.9, "1_easy_small_dqn_her_seed0": 1.5}
     jobs = check_sweep(sweep_dir, names, target)
