@@ -312,6 +312,7 @@ def check_group_choices(argv: list[str], conf: Path) -> None:
     from ss_drl.training.config import ConfigError
 
     chosen: dict[str, str] = {}
+    by_default = _default_groups(conf)
     for key, value, group in _command_line(argv, conf) or ():
         if group is not None and "@" not in key:
             if group in chosen:
@@ -320,7 +321,7 @@ def check_group_choices(argv: list[str], conf: Path) -> None:
                     f"-m +{group}={chosen[group].split('=', 1)[1]},{value}"
                 )
             chosen[group] = f"{key}={value}"
-            if not key.startswith("+") and group not in _default_groups(conf):
+            if not key.startswith("+") and group not in by_default:
                 raise ConfigError(f"{group}: not in the default config; choose it with +{group}={value}")
         if group is None or any(c in value for c in _EXPANDED):
             continue  # a value (agent.lr=...), or a choice Hydra expands
