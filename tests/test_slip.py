@@ -212,21 +212,26 @@ def test_evaluation_rolls_out_in_the_env_dynamics():
     assert stuck.lengths == [50] and not stuck.success and stuck.path == [0, 0]
 
 
-@pytest.mark.parametrize(("maze_name", "slip", "evals_in_last_quarter"), [("easy", 0.1, 5), ("medium", 0.1, 30),
-                                                                          ("easy", 0.25, 5)])  # fmt: skip
+@pytest.mark.parametrize(("maze_name", "slip", "evals_in_last_quarter"), [
+    ("easy", 0.1, 5), ("easy", 0.1, 6), ("medium", 0.1, 30), ("medium", 0.1, 31), ("easy", 0.25, 5), ("easy", 0.25, 6),
+])  # fmt: skip
 def test_the_optimal_policy_passes_the_learned_rule(maze_name, slip, evals_in_last_quarter):
     """With the derived ``trainer.eval_episodes``, the optimal policy simulated over 200 runs passes the learned rule
     (at least 90% of the last quarter's evaluations within 1.05x the expected steps, all episodes reaching G) in at
-    least 95% of them. The last quarter holds 5 evaluations on Easy's budget (10k, every 500) and 30 on Medium's."""
+    least 95% of them. An evaluation comes at the first batch end at or past each 500 env steps, and the last quarter
+    holds those strictly past 3/4 of the budget: 5 or 6 on Easy's budget (10k; 6 unless a batch ends exactly at
+    7,500, as in most runs: a session-47 reading found 6 where this test had assumed 5), 30 or 31 on Medium's (60k).
+    The mean length and the optimum are rounded as the trainer rounds them."""
     from fractions import Fraction
 
     from ss_drl.envs.maze import load_maze
     from ss_drl.training.greedy import eval_episodes, evaluate_policy
+    from ss_drl.training.greedy import optimum as trainer_optimum
     from ss_drl.training.learned import SHARE, within_bound
 
     maze = load_maze(maze_name)
-    v, policy = maze.expected_steps(slip)
-    optimum = float(v[maze.start_cell])
+    _, policy = maze.expected_steps(slip)
+    optimum = trainer_optimum(maze, slip)
     n = eval_episodes(slip)
     runs = 200
     ev = evaluate_policy(
@@ -235,7 +240,10 @@ def test_the_optimal_policy_passes_the_learned_rule(maze_name, slip, evals_in_la
     lengths = torch.tensor(ev.lengths).view(runs, evals_in_last_quarter, n).double()
     reached = torch.tensor(ev.successes).view(runs, evals_in_last_quarter, n)
     within = [
-        [within_bound(float(lengths[r, e].mean()), bool(reached[r, e].all()), optimum) for e in range(lengths.shape[1])]
+        [
+            within_bound(round(float(lengths[r, e].mean()), 3), bool(reached[r, e].all()), optimum)
+            for e in range(lengths.shape[1])
+        ]
         for r in range(runs)
     ]
     passed = sum(Fraction(sum(w), len(w)) >= SHARE for w in within)
