@@ -250,11 +250,13 @@ def test_the_optimal_policy_passes_the_learned_rule(maze_name, slip, evals_in_la
     assert passed >= 0.95 * runs, (passed, n)
 
 
-def test_the_guided_phase_reaches_smart_start_under_slips():
+@pytest.mark.parametrize("experiment", ["easy_tabular_ss", "easy_ss_her"])
+def test_the_guided_phase_reaches_smart_start_under_slips(experiment):
     """Easy at slip 0.25, a count model learned from 10 tries of every move in the slipping env, S_ss drawn at
     random among the visited cells (a UCB with both weights 0, seeded): 200 guided phases, each stepped in the
-    slipping env from S, follow the planner's policy from wherever the agent lands. At least 90% arrive within the
-    derived limit (3x the planned route), and every phase ends by the limit."""
+    slipping env from S, follow the planner's policy from wherever the agent lands, with the experiment's own random
+    steps (``smart_start.guided_epsilon``: 0 for tabular SS, 0.1 for the deep methods). At least 90% arrive within
+    the derived limit (3x the planned route), and every phase ends by the limit."""
     from ss_drl.envs.maze import load_maze
     from ss_drl.smart_start import CountModel, Planner, SmartStart
     from ss_drl.training.trainer import guided_limit
@@ -274,10 +276,12 @@ def test_the_guided_phase_reaches_smart_start_under_slips():
     counts = CountModel(maze.n_cells)
     counts.update(s, a, slipping(s, a), torch.zeros(s.numel()))
     assert not counts.structure().deterministic
-    limit = guided_limit(compose_cfg("+experiment=easy_ss_her").smart_start, slip)
+    settings = compose_cfg(f"+experiment={experiment}").smart_start
+    limit = guided_limit(settings, slip)
     assert limit == 3.0
     ss = SmartStart(maze, counts, n, eta=1.0, c_ss=0.0, w_q=0.0, theta=0, planner=Planner(maze.width),
-                    generator=torch.Generator().manual_seed(1), guided_limit=limit)  # fmt: skip
+                    generator=torch.Generator().manual_seed(1), guided_limit=limit,
+                    guided_epsilon=settings.guided_epsilon)  # fmt: skip
     ss.end_episodes(torch.ones(n, dtype=torch.bool))
     starts = torch.full((n,), maze.start_cell)
     ss.start_episodes(torch.ones(n, dtype=torch.bool), starts, torch.full((n,), maze.goal_cell),
