@@ -337,3 +337,19 @@ def test_a_run_written_before_greedy_path_resumes_as_it_ran(tmp_path):
     Trainer(compose_cfg(*RUN, "trainer.resume=true"), cut).train()
     for file in (EPISODES_FILE, EVAL_FILE, TRAIN_FILE):
         assert rows_without_wall_clock(cut / file) == rows_without_wall_clock(full / file), file
+
+
+def test_a_finished_run_from_before_the_evaluation_rng_resumes_to_its_summary(tmp_path):
+    """A checkpoint written before evaluations rolled out in the env holds no ``eval_rng`` nor ``last_success_rate``.
+    Resuming such a finished run with its own budget (``trainer.resume=auto`` over an old sweep does) ran no
+    evaluation and crashed writing the summary (``round(None)``; found by a session-47 reading): the last evaluation's
+    success, one deterministic episode then, is its success rate."""
+    run = tmp_path / "run"
+    first = Trainer(compose_cfg(*RUN), run).train()
+    for name in (CHECKPOINT_FILE, CHECKPOINT_PREV_FILE):
+        saved = ckpt.read(run / name)
+        del saved["eval_rng"], saved["last_success_rate"]
+        torch.save(saved, run / name)
+    again = Trainer(compose_cfg(*RUN, "trainer.resume=true"), run).train()
+    assert again["final_eval_success_rate"] == first["final_eval_success_rate"] in (0.0, 1.0)
+    assert again["learned_env_step"] == first["learned_env_step"]

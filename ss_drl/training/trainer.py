@@ -545,6 +545,8 @@ class Trainer:
         if "eval_rng" in state:  # absent in checkpoints written before evaluations rolled out in the env
             self.eval_generator.set_state(state["eval_rng"])
             self.last_success_rate = state["last_success_rate"]
+        elif self.evals:  # one deterministic episode per evaluation then: its success is the evaluation's rate
+            self.last_success_rate = float(bool(self.evals[-1].success))
         self.next_eval, self.next_checkpoint = state["next_eval"], state["next_checkpoint"]
         self.next_log = state["next_log"]
         self.ss_targets = list(state["ss_targets"])
