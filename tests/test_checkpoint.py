@@ -5,6 +5,7 @@ previous checkpoint (one warning line) when the latest cannot be read, identical
 
 from __future__ import annotations
 
+import copy
 import subprocess
 import sys
 import types
@@ -353,3 +354,29 @@ def test_a_finished_run_from_before_the_evaluation_rng_resumes_to_its_summary(tm
     again = Trainer(compose_cfg(*RUN, "trainer.resume=true"), run).train()
     assert again["final_eval_success_rate"] == first["final_eval_success_rate"] in (0.0, 1.0)
     assert again["learned_env_step"] == first["learned_env_step"]
+
+
+@pytest.mark.parametrize("experiment", ["easy_ss_her", "easy_ss_her_bounded", "easy_tabular_ss", "medium_dqn"])
+def test_a_config_from_before_every_added_key_is_compatible_with_the_settings_it_ran(experiment):
+    """A checkpoint of this format written before any of :data:`ckpt.ADDED_KEYS` existed (its config without them)
+    resumes under today's config of the same experiment wherever today's values are those the run had; a value it
+    did not have is refused. Before session 47 only ``smart_start.greedy_path`` was filled in, so a format-2 run older
+    than the exploration options could not be resumed at all."""
+    overrides = (
+        [f"+experiment={experiment}", "smart_start=on"] if "bounded" in experiment else [f"+experiment={experiment}"]
+    )
+    current = task_config(compose_cfg(*overrides))
+    saved = copy.deepcopy(current)
+    removed = 0
+    for section, key in ckpt.ADDED_KEYS:
+        if key in (saved.get(section) or {}):
+            assert current[section][key] == ckpt.ADDED_KEYS[section, key], (section, key)
+            del saved[section][key]
+            removed += 1
+    assert removed >= (2 if experiment == "easy_tabular_ss" else 9)
+    ckpt.check_compatible(saved, current)
+    if "smart_start" in current and "select" in current["smart_start"]:
+        changed = copy.deepcopy(current)
+        changed["smart_start"]["explore"] = "frontier"
+        with pytest.raises(ConfigError, match=r"^trainer.resume: config 'smart_start' differs"):
+            ckpt.check_compatible(saved, changed)

@@ -325,17 +325,29 @@ def refuse_overwrite(cfg, run_dir: Path, key: str = "hydra.run.dir") -> None:
     )
 
 
-#: Config keys added after runs of this checkpoint format were written, each with the value that reproduces what those
-#: runs did: a checkpoint whose config lacks one resumes as if it held that value (and is refused if the resumption
-#: sets another).
-ADDED_KEYS = {("smart_start", "greedy_path"): False}
+#: Config keys added after runs of this checkpoint format (:data:`FORMAT`, from 327f876) were written, each with the
+#: value that reproduces what those runs did (the option off, or a setting those runs' code had no other way of
+#: doing): a checkpoint whose config lacks one resumes as if it held that value (and is refused if the resumption sets
+#: another). Filled in only where the resuming config has the key (a tabular run's agent has none of the DQN's).
+ADDED_KEYS = {
+    ("agent", "factored_bootstrap"): False,  # 0abc644
+    ("agent", "successor_double_dqn"): True,  # 0abc644: the successors took the online network's greedy action
+    ("agent", "sparse_tables"): False,  # f49bbcc
+    ("env", "slip"): 0.0,  # 24e1157
+    ("smart_start", "select"): "visited",  # cfc9e1d: the paper's Smart Start
+    ("smart_start", "explore"): "epsilon_greedy",  # cfc9e1d
+    ("smart_start", "explore_after_goal"): True,  # cfc9e1d (with the paper's select and explore, either reads alike)
+    ("smart_start", "guided_limit"): None,  # 4d36adf (a limit only under slips, which did not exist)
+    ("smart_start", "explore_from_start"): False,  # ed255e7
+    ("smart_start", "greedy_path"): False,  # cde4c7c
+}
 
 
 def check_compatible(saved: dict, current: dict) -> None:
     """Resuming with a different maze, agent, HER or Smart Start setup, or seed, would mix two runs: refuse it."""
     saved = copy.deepcopy(saved)
     for (section, key), value in ADDED_KEYS.items():
-        if isinstance(saved.get(section), dict):
+        if isinstance(saved.get(section), dict) and key in (current.get(section) or {}):
             saved[section].setdefault(key, value)
     for key in sorted(set(saved) | set(current)):
         if key in RESUMABLE_CHANGES:
