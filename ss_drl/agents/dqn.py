@@ -255,8 +255,10 @@ class DQNAgent:
     def greedy_q_values(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         """:meth:`q_values` of the network whose greedy policy is evaluated: the online network, or with
         ``eval_network: target`` the target network (with Polyak updates, the online network's weights averaged
-        over the last ~1/tau updates). Collection, the TD targets and Smart Start read the online and target
-        networks either way, so the choice changes no training."""
+        over the last ~1/tau updates). Collection and the TD targets read the online and target networks either
+        way; Smart Start's greedy-path walk (``smart_start.greedy_path``) reads this one, so with that option the
+        choice also decides S_ss (and with ``sparse_tables`` the target's lagging rows catch up at each episode
+        start, which moves their float rounding). Without it the choice changes no training."""
         network = self.loss.target_value_network.network if self.settings.eval_network == "target" else self.q_network
         if network is not self.q_network and self.tables is not None:
             self.tables.catch_up()
