@@ -315,6 +315,31 @@ def test_greedy_path_sends_the_episode_to_the_untried_greedy_move_and_takes_it()
     assert paper.target.tolist() == [5] and paper.first_move.tolist() == [-1]
 
 
+def test_greedy_path_pending_move_survives_a_checkpoint_mid_route():
+    """Cut two steps into the guided phase to the untried greedy move, the controller's state (its target, the
+    exact-arrival flag, the pending move) restored into a new controller finishes the walk and takes the move on
+    arrival, as the uncut one would. (A run-level resume test can pass without any cut landing in such a phase.)"""
+    maze = _maze()
+    model = _goal_reached_model(maze, untried_at_4=(D,))
+    ss = _greedy_path_start(maze, model, {**ROUTE, 4: D})
+    cell = maze.start_cell
+    for _ in range(2):
+        _, cell = _step(ss, maze, cell)
+    assert ss.active.tolist() == [True] and ss.first_move.tolist() == [D] and ss.exact.tolist() == [True]
+    restored = SmartStart(
+        maze, model, 1, eta=1.0, c_ss=2.0, w_q=0.0, theta=0, planner=Planner(maze.width, gamma=0.99),
+        generator=torch.Generator().manual_seed(5), greedy_path=True,
+    )  # fmt: skip
+    restored.load_state_dict(ss.state_dict())
+    walked = []
+    while restored.active.any():
+        action, cell = _step(restored, maze, cell)
+        walked.append(action)
+    assert walked == [R, R, R] and cell == 4
+    assert _step(restored, maze, cell) == (D, 4)
+    assert _step(restored, maze, cell)[0] == SENTINEL
+
+
 @pytest.mark.parametrize(
     "policy, why",
     [(ROUTE, "the greedy path reaches G over tried moves"), ({**ROUTE, 2: L}, "it loops: 1 right to 2, 2 left to 1")],
