@@ -1,7 +1,8 @@
 """The ``train`` section: training throughput (env steps/s, updates included) of one experiment (``--experiment``,
 default ``easy_dqn_her``) against Stable-Baselines3 ``DQN`` + ``HerReplayBuffer`` with the same network width, batch
 size, buffer size, learning_starts, update-to-data ratio, target-network update and HER setting, against an older
-checkout of ss-drl (``--baseline-checkout``, names mapped by docs/migration.md: :func:`baseline_invocation`), and
+checkout of ss-drl (``--baseline-checkout``; names mapped by docs/migration.md where the checkout predates them:
+:func:`baseline_invocation`), and
 against the eager-PyTorch ceiling (:func:`run_bare_update`). Only the training phase is timed (from learning_starts
 on, from each run's own train.csv); the whole-run rate is shown too. Each ss-drl run, this checkout's and the
 baseline's alike, is a subprocess ``python scripts/train.py`` of its checkout. Stable-Baselines3 is optional (the
@@ -156,12 +157,19 @@ DEEP_METHODS = ("dqn_her", "ss_her", "dqn", "ss")  # longest suffix first
 TABULAR_METHODS = ("tabular_ss", "tabular")
 
 
-def baseline_invocation(experiment: str) -> tuple[str, list[str]]:
-    """Today's ``+experiment=NAME`` as 7ac5009 ran it (docs/migration.md): ``(experiment there, overrides)``.
+#: A file that only checkouts with today's names have (the rename of issue 48, 327f876, added it).
+RENAMED_MARKER = Path("conf", "agent", "dqn_bounded.yaml")
+
+
+def baseline_invocation(experiment: str, checkout: str | Path | None = None) -> tuple[str, list[str]]:
+    """Today's ``+experiment=NAME`` as 7ac5009 ran it (docs/migration.md): ``(experiment there, overrides)``. A
+    ``checkout`` that already has today's names (:data:`RENAMED_MARKER`) runs ``NAME`` as it is.
 
     ``<maze>_<method>_bounded`` is 7ac5009's ``<maze>_<method>`` (LCFATO, its shared setting); the replay-only
     ``<maze>_<method>`` is 7ac5009's ``<maze>_<method>`` with :data:`LM_OVERRIDES`; the tabular experiments are
     unchanged. Raises ValueError (one line) for an experiment 7ac5009 has no counterpart of (``<maze>_frontier``)."""
+    if checkout is not None and (Path(checkout) / RENAMED_MARKER).is_file():
+        return experiment, []
     for method in DEEP_METHODS:
         if experiment.endswith(f"_{method}_bounded"):
             return experiment[: -len("_bounded")], []
@@ -387,7 +395,7 @@ def bench_train(
     baseline = None
     if baseline_checkout is not None:
         baseline_checkout = Path(baseline_checkout).resolve()
-        base_name, base_overrides = baseline_invocation(experiment)  # ValueError (one line) for no baseline
+        base_name, base_overrides = baseline_invocation(experiment, baseline_checkout)  # ValueError: no baseline
         if not (baseline_checkout / "conf" / "experiment" / f"{base_name}.yaml").is_file():
             raise ValueError(
                 f"{baseline_checkout}: has no conf/experiment/{base_name}.yaml (the baseline of {experiment})"

@@ -529,6 +529,18 @@ def test_baseline_invocation_maps_names_by_the_migration_table():
             train.baseline_invocation(experiment)
 
 
+def test_a_baseline_checkout_with_todays_names_runs_the_experiment_as_it_is(tmp_path):
+    """A checkout made after the rename (it has conf/agent/dqn_bounded.yaml, as this one does) runs the same name
+    with no overrides: mapping it would run another learner (today's ``easy_ss_her`` is replay-only; 7ac5009's
+    ``easy_ss_her`` was the model-bounded one). A checkout without that file is mapped as 7ac5009 is."""
+    root = Path(__file__).resolve().parent.parent
+    assert (root / train.RENAMED_MARKER).is_file()
+    for experiment in ("easy_ss_her", "hard_ss_her_bounded", "easy_frontier"):
+        assert train.baseline_invocation(experiment, root) == (experiment, [])
+    assert train.baseline_invocation("hard_ss_her_bounded", tmp_path) == ("hard_ss_her", [])
+    assert train.baseline_invocation("easy_ss_her", tmp_path) == ("easy_ss_her", list(train.LM_OVERRIDES))
+
+
 def test_baseline_refused_in_one_line_for_an_experiment_without_one(capsys):
     code = cli.main(["--section", "train", "--experiment", "easy_frontier", "--baseline-checkout", str(ROOT)])
     captured = capsys.readouterr()
