@@ -266,7 +266,7 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
     assert f"batch {replay_only.batch_size};" in text
     # The second table: the online network's two passes against one, over the bounded update's own row counts.
     batch = learners[bounded_name].batch_size
-    extra = batch * (1 + 4)  # the next states and, with model targets, the four successors of each
+    extra = batch * (1 + 3)  # the next states and, with model targets, the successors of the three actions not taken
     assert f"({batch} batch rows, {extra:,} bootstrap rows;" in text
     assert [row["online passes"].split(":")[0] for row in passes] == ["two (the update's)", "one"]
     for row in passes:
@@ -277,9 +277,9 @@ def test_update_section_quick_times_the_stated_updates(monkeypatch):
 
 @pytest.mark.parametrize("successor_double", [True, False])
 def test_bootstrap_rows_counts_the_online_networks_bootstrap_rows(successor_double):
-    """One loss computation of the model-bounded learner sends the next states and the model targets' four
-    successors of each through the online network (double DQN), or only the next states when the successors take
-    the target network's own max; the count makes no gradient step."""
+    """One loss computation of the model-bounded learner sends the next states and the model targets' successors of
+    the three actions not taken through the online network (double DQN), or only the next states when the
+    successors take the target network's own max; the count makes no gradient step."""
     from ss_drl.envs.maze import load_maze
     from ss_drl.smart_start import CountModel
     from ss_drl.training.trainer import make_agent
@@ -296,7 +296,7 @@ def test_bootstrap_rows_counts_the_online_networks_bootstrap_rows(successor_doub
     agent.store(data)
     before = [p.detach().clone() for p in agent.loss.parameters()]
     batch = agent.settings.batch_size
-    assert update.bootstrap_rows(agent) == (batch * 5 if successor_double else batch)
+    assert update.bootstrap_rows(agent) == (batch * 4 if successor_double else batch)
     assert all(torch.equal(a, b) for a, b in zip(before, agent.loss.parameters()))
     assert agent.updates == 0 and "_online" not in vars(agent.loss)
 

@@ -805,8 +805,8 @@ def test_model_targets_give_every_seen_action_its_one_step_target_by_hand():
     """The count model has seen one route into G on easy_small and, at one route cell, a bump. The target network
     is a table V. For a sample at route cell s_j with goal g, each action that the model has seen from s_j is held
     to r - 1 + V(s'), r = 1 and no bootstrap where s' = g (entering g ends): the route's move (s' = s_{j+1}) and the
-    bump (s' = s_j). An untried one is held to its own prediction (adds no loss). Half the samples ask for G, the
-    other half for s_{j+1} itself (a relabeled goal, entered by the route's move)."""
+    bump (s' = s_j). An untried one, and the taken one, are held to their own prediction (add no loss). Half the
+    samples ask for G, the other half for s_{j+1} itself (a relabeled goal, entered by the route's move)."""
     maze = load_maze("easy_small")
     counts, route, moves = route_counts(maze)
     table = maze.transition_table()
@@ -831,7 +831,8 @@ def test_model_targets_give_every_seen_action_its_one_step_target_by_hand():
             seen_moves[a_bump] = route[j]
         for a, s2 in seen_moves.items():
             seen[b, a] = True
-            held[b, a] = 0.0 if s2 == g else -1.0 + float(v[s2])
+            if a != int(actions[b]):  # the taken action holds its prediction: the loss regresses it on y instead
+                held[b, a] = 0.0 if s2 == g else -1.0 + float(v[s2])
     torch.testing.assert_close(agent.td_target.others(batch, q, agent.loss.bootstrap), held)
     y = one_step_targets(batch, v)
     torch.testing.assert_close(taken(agent, batch), y)  # the taken action's own target is the TD one

@@ -334,12 +334,14 @@ def test_the_composed_target_equals_the_hand_composed_clamp_where_every_bound_bi
     5. goal 1, (5, left) -> 0: base -31 -> the value range's -20.
 
     The other actions hold their prediction (-5 everywhere here) or, where the count model saw the action, its
-    one-step model target ``-1 + V(s')`` (0 on entering the goal), clamped into the all-action bounds for G:
-    0. (4): right -> 5: -9.                    3. (6): right -> 7 gives 4, floor and ceiling -1 -> -1; down
-    1. (0): right -> 1: -10; down -> 4: -3.       (off the grid) ceiling -2, left ceiling -2, up ceiling -1.
-    2. (0) for G: right -10 into [-4, -2] -> -4; 4. (4), goal 5: right enters it: 0.
-       down -3 into [-4, -4] -> -4; left and    5. (5): right -> 6: -10.
-       up ceiling -3 over -5."""
+    one-step model target ``-1 + V(s')`` (0 on entering the goal), clamped into the all-action bounds for G. The
+    taken action holds its prediction clamped the same way, its model target left uncomputed (the loss does not
+    read it): in samples 0 and 1 it would have been -9 and -3.
+    0. (4): right taken: -5.                   3. (6): right -> 7 gives 4, floor and ceiling -1 -> -1; down
+    1. (0): right -> 1: -10; down taken: -5.      (off the grid) ceiling -2, left ceiling -2, up ceiling -1.
+    2. (0) for G: right (taken) -5 into         4. (4), goal 5: right enters it: 0.
+       [-4, -2] -> -4; down -3 into [-4, -4]    5. (5): right -> 6: -10.
+       -> -4; left and up ceiling -3 over -5."""
     target, batch = every_bound_binds()
 
     def bootstrap(states, goals):
@@ -348,8 +350,8 @@ def test_the_composed_target_equals_the_hand_composed_clamp_where_every_bound_bi
     assert target.taken(batch, bootstrap).squeeze(-1).tolist() == [-1.0, -3.0, -4.0, -1.0, 0.0, -20.0]
     held = target.others(batch, torch.full((6, 4), -5.0), bootstrap)
     expected = [
-        [-9, -5, -5, -5],
-        [-10, -3, -5, -5],
+        [-5, -5, -5, -5],
+        [-10, -5, -5, -5],
         [-4, -4, -5, -5],
         [-1, -5, -5, -5],
         [0, -5, -5, -5],
@@ -362,10 +364,11 @@ def test_the_composed_target_equals_the_hand_composed_clamp_where_every_bound_bi
 @pytest.mark.parametrize("fused", [True, False])
 def test_fused_passes_give_the_separate_passes_targets(fused):
     """One bootstrap call for every state (the window's end, the k-step maximum's states, the model targets'
-    successors) against two (the successors on their own, as at 7ac5009): the same targets and held values, to float
-    tolerance, on the samples where every bound binds; and the fused target makes one call where the separate one
-    makes two. The bootstrap is a real network's double-DQN value, scaled down and added to the hand values ``V``, so
-    that the floats differ from the hand test's while every bound still decides the target it decides there."""
+    successors of the actions not taken) against two (the successors on their own, as at 7ac5009): the same targets
+    and held values, to float tolerance, on the samples where every bound binds; and the fused target makes one call
+    where the separate one makes two. The bootstrap is a real network's double-DQN value, scaled down and added to
+    the hand values ``V``, so that the floats differ from the hand test's while every bound still decides the target
+    it decides there."""
     torch.manual_seed(0)
     online, target_net = GoalQNetwork(CORRIDOR, "hybrid", 8, (16, 16)), GoalQNetwork(CORRIDOR, "hybrid", 8, (16, 16))
     calls = []
@@ -381,7 +384,7 @@ def test_fused_passes_give_the_separate_passes_targets(fused):
     other, _ = every_bound_binds(not fused)
     calls.clear()
     got = one(batch, q_all, bootstrap)
-    assert calls == ([6 * 3 + 6 * 4] if fused else [6 * 3, 6 * 4])
+    assert calls == ([6 * 3 + 6 * 3] if fused else [6 * 3, 6 * 3])  # no successor of a taken action
     want = other(batch, q_all, bootstrap)
     torch.testing.assert_close(got[0], want[0])
     torch.testing.assert_close(got[1], want[1])
@@ -494,7 +497,8 @@ def test_a_bound_the_user_set_explicitly_is_refused_instead():
 
 def test_successors_by_the_target_networks_max_skip_the_online_pass():
     """``successor_double=False``: the window's states (6 x 3 rows here) take the online network's action, the model
-    targets' successors (6 x 4) the target network's own max; the bootstrap is asked for the split, by hand."""
+    targets' successors of the actions not taken (6 x 3) the target network's own max; the bootstrap is asked for the
+    split, by hand."""
     target, batch = every_bound_binds()
     target.successor_double = False
     calls = []
@@ -504,8 +508,8 @@ def test_successors_by_the_target_networks_max_skip_the_online_pass():
         return V[states].unsqueeze(-1)
 
     held = target.others(batch, torch.full((6, 4), -5.0), bootstrap)
-    assert calls == [(6 * 3 + 6 * 4, 6 * 3)]
-    assert held.tolist()[1] == [-10, -3, -5, -5]  # the successors' values as before: V is the bootstrap's
+    assert calls == [(6 * 3 + 6 * 3, 6 * 3)]
+    assert held.tolist()[1] == [-10, -5, -5, -5]  # the successors' values as before: V is the bootstrap's
 
 
 def test_loss_bootstrap_splits_double_dqn_from_the_target_max():

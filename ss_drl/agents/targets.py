@@ -574,8 +574,12 @@ class TDTarget:
     ``value_range``; and what the other actions are held to (see the module's docstring).
 
     Every state whose value the target bootstraps (the state after the window, the bounds' extra states, the model
-    targets' successors) goes through one call of the bootstrap, so one batched pass of the target network and one
-    of the online network (double DQN) per update. ``fused=False`` makes the model targets' successors a call of
+    targets' successors of the actions not taken) goes through one call of the bootstrap, so one batched pass of the
+    target network and one of the online network (double DQN) per update. The taken action's successor is left out
+    of it: what that action is held to is never used (the loss regresses it on the target), so its held entry is its
+    prediction clamped into the bounds, as for an untried action. The other rows' values are the same numbers to float
+    rounding (see ``fused``; on the development machine the runs came out the same bit for bit, docs/notebook,
+    session 48). ``fused=False`` makes the model targets' successors a call of
     their own: the same numbers to float rounding (a matrix product's sums can round differently with the batch's
     size; on the development machine the runs came out the same bit for bit, docs/notebook, session 36).
     ``successor_double=False`` values the successors by the target network's own max, so that the online network's
@@ -630,8 +634,8 @@ class TDTarget:
         self, sample: TensorDictBase, q_all: torch.Tensor | None, bootstrap: Bootstrap
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """``(target, held)``: (B, 1) the taken action's target, and (B, A) what every action of s_t is held to (the
-        taken one's entry unused), or None when nothing holds the other actions or ``q_all`` (the online network's
-        predictions for s_t) is None."""
+        taken one's entry, which the loss does not use, is its prediction clamped into the all-action bounds), or None
+        when nothing holds the other actions or ``q_all`` (the online network's predictions for s_t) is None."""
         next_obs, next_goal = sample.get(("next", "observation")), sample.get(("next", "desired_goal"))
         extra = [(b, b.bootstrap_states(sample)) for b in self.bounds]
         extra = [(b, s) for b, s in extra if s is not None]
@@ -641,20 +645,27 @@ class TDTarget:
         succ = None if self.model_targets is None else self.model_targets.successors(sample)
         if succ is None:
             values, succ_values = bootstrap(states.flatten(), goals.flatten()).view(states.shape), None
-        elif self.fused:
-            succ_goals = sample.get("desired_goal").unsqueeze(1).expand_as(succ)
-            both = (
-                torch.cat((states.flatten(), succ.clamp(min=0).flatten())),
-                torch.cat((goals.flatten(), succ_goals.flatten())),
-            )
-            out = bootstrap(*both) if self.successor_double else bootstrap(*both, double_rows=states.numel())
-            values, succ_values = out[: states.numel()].view(states.shape), out[states.numel() :].view(succ.shape)
         else:
-            if not self.successor_double:
-                raise ValueError("successor_double=False needs the fused pass")
-            values = bootstrap(states.flatten(), goals.flatten()).view(states.shape)
-            succ_goals = sample.get("desired_goal").unsqueeze(1).expand_as(succ)
-            succ_values = bootstrap(succ.clamp(min=0).flatten(), succ_goals.flatten()).view(succ.shape)
+            # Only the actions not taken need their successors' values (the taken one's held entry is never used):
+            # (B, A - 1) successors of the other actions, then scattered back into (B, A), the taken one left untried.
+            action = sample.get("action").reshape(-1, 1)
+            others = (action + torch.arange(1, succ.shape[-1])) % succ.shape[-1]
+            other_succ = succ.gather(-1, others)
+            succ_goals = sample.get("desired_goal").unsqueeze(1).expand_as(other_succ)
+            if self.fused:
+                both = (
+                    torch.cat((states.flatten(), other_succ.clamp(min=0).flatten())),
+                    torch.cat((goals.flatten(), succ_goals.flatten())),
+                )
+                out = bootstrap(*both) if self.successor_double else bootstrap(*both, double_rows=states.numel())
+                values, other_values = out[: states.numel()].view(states.shape), out[states.numel() :]
+            else:
+                if not self.successor_double:
+                    raise ValueError("successor_double=False needs the fused pass")
+                values = bootstrap(states.flatten(), goals.flatten()).view(states.shape)
+                other_values = bootstrap(other_succ.clamp(min=0).flatten(), succ_goals.flatten())
+            succ_values = values.new_zeros(succ.shape).scatter_(-1, others, other_values.view(other_succ.shape))
+            succ = succ.scatter(-1, action, -1)
         at, extra_values = 1, {}
         for b, s in extra:
             extra_values[id(b)] = values[:, at : at + s.shape[1]]
