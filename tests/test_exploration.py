@@ -121,11 +121,24 @@ def test_smart_start_on_the_frontier_by_hand():
     assert ss.planned_steps.tolist() == [3]  # up, right, right
 
 
+def _explored_but_3(maze) -> CountModel:
+    """Every move of every free cell tried once, then each free cell but 3 visited once more (right again): no
+    untried move is left, and 3 is the least visited state."""
+    model = fully_explored_model(maze)
+    table = maze.transition_table()
+    again = torch.tensor([c for c in range(maze.n_cells) if not maze.walls.reshape(-1)[c] and c != 3])
+    right = torch.full_like(again, R)
+    model.update(again, right, torch.from_numpy(table[again.numpy(), R]), torch.zeros(again.numel()))
+    return model
+
+
 def test_smart_start_on_the_frontier_falls_back_to_every_visited_state():
     maze = _maze()
-    ss = _controller(maze, fully_explored_model(maze))
-    _start(ss, maze)  # nothing is left to try: S_ss by the paper's UCB, a visited state
-    assert ss.used.tolist() == [True] and ss.counts.count(int(ss.target[0])) > 0
+    ss = _controller(maze, _explored_but_3(maze))
+    _start(ss, maze)  # nothing is left to try: S_ss by the paper's UCB over every visited state, the least visited
+    paper = _controller(maze, _explored_but_3(maze), select="visited", explore="epsilon_greedy")
+    _start(paper, maze)
+    assert ss.used.tolist() == [True] and ss.target.tolist() == [3] == paper.target.tolist()
 
 
 # --- explore ---------------------------------------------------------------------------------------------------------
@@ -141,21 +154,31 @@ def test_untried_move_on_arrival_then_the_policy():
 
 
 def test_exploration_walks_the_shortest_route_to_the_nearest_untried_move():
+    """Over seeds, both ways out of 3 occur, and each is checked: the walk goes on from where the agent lands."""
     maze = _maze()
-    ss = _controller(maze, _hand_model(maze))
-    _start(ss, maze, cell=2)  # S_ss = 2: there already, so the exploration phase begins at once
-    assert ss.exploring.tolist() == [True] and ss.steps.tolist() == [0]
-    assert _step(ss, maze, 2) == (R, 3)
-    # In 3 every move is untried: each is tried in turn (their order is random), staying or leaving as they go.
-    cell, tried_in_3 = 3, set()
-    while cell == 3:
-        action, cell = _step(ss, maze, 3)
-        assert action not in tried_in_3
-        tried_in_3.add(action)
-    # The agent left 3 by right (into 4) or by left (back into 2). From 2, whose moves are all tried, the shortest
-    # route to the nearest untried move leads right: back to 3 if it still has one, else through 3 on to 4.
-    if cell == 2:
+    ways_out = set()
+    for seed in range(12):
+        ss = _controller(maze, _hand_model(maze), seed=seed)
+        _start(ss, maze, cell=2)  # S_ss = 2: there already, so the exploration phase begins at once
+        assert ss.exploring.tolist() == [True] and ss.steps.tolist() == [0]
         assert _step(ss, maze, 2) == (R, 3)
+        # In 3 every move is untried: each is tried in turn (their order is random), staying or leaving as they go.
+        cell, tried_in_3 = 3, set()
+        while cell == 3:
+            action, cell = _step(ss, maze, 3)
+            assert action not in tried_in_3
+            tried_in_3.add(action)
+        ways_out.add(cell)
+        if cell == 4:  # every move of 4 is untried: one of them at once
+            action, _ = _step(ss, maze, 4)
+            assert action in (R, D, L, U)
+        else:  # back in 2, whose moves are all tried: the nearest untried move is 3's right (3 was left by left)
+            assert cell == 2 and R not in tried_in_3
+            assert _step(ss, maze, 2) == (R, 3)
+            untried = ss.frontier.untried(torch.tensor([3]))[0]
+            action, _ = _step(ss, maze, 3)
+            assert action != SENTINEL and bool(untried[action])
+    assert ways_out == {2, 4}
 
 
 def test_exploration_inside_a_batch_sees_the_moves_the_model_has_not_counted_yet():
@@ -414,6 +437,10 @@ def test_episodes_count_each_new_move_once_and_the_exploration_phase(tmp_path):
     assert frontier_steps == sorted(frontier_steps, reverse=True)
     assert sum(e.explore_steps for e in guided) > 0
     assert all(e.new_moves_after_ss <= e.new_moves for e in guided)
+    # The new moves after S_ss are the exploration phase's work (the guided route runs over tried moves), and the
+    # phases of an episode do not overlap: guided steps, then the exploration phase, within the episode's length.
+    assert sum(e.new_moves_after_ss for e in guided) > 0
+    assert all(e.ss_steps + e.explore_steps <= e.length for e in guided)
 
 
 @pytest.mark.parametrize("from_start", [False, True])

@@ -260,7 +260,8 @@ def test_easy_small_frontier_end_to_end(tmp_path):
     assert summary["completed"] and summary["env_steps"] == 2000 and summary["updates_per_s"] == 0
     assert 0 < summary["first_goal_env_step"] < 1000 and summary["first_goal_episode"] == 1
     assert summary["learned_env_step"] is not None and summary["final_eval_length"] == summary["optimal_length"] == 19
-    assert summary["final_greedy_accuracy"] > 0.9 and summary["bounds_in_force"] == []
+    # Its memory holds every move by then, so its greedy action is a shortest-path move in every cell.
+    assert summary["final_greedy_accuracy"] == 1.0 and summary["bounds_in_force"] == []
     assert (run / TRAIN_FILE).read_text().splitlines() == [",".join(TRAIN_COLUMNS)]
     with (run / EPISODES_FILE).open() as f:
         episodes = list(csv.DictReader(f))

@@ -217,8 +217,10 @@ def test_an_evaluation_brings_every_csv_on_disk_up_to_date(tmp_path):
     logger.log_train(dict.fromkeys(TRAIN_COLUMNS, 0))
     logger.log_eval(dict.fromkeys(EVAL_COLUMNS, 0))
     on_disk = {
-        name: list(csv.reader((tmp_path / name).read_text().splitlines())) for name in (EPISODES_FILE, TRAIN_FILE)
+        name: list(csv.reader((tmp_path / name).read_text().splitlines()))
+        for name in (EPISODES_FILE, TRAIN_FILE, EVAL_FILE)
     }
     assert [row[0] for row in on_disk[EPISODES_FILE][1:]] == ["0", "1", "2"]
     assert len(on_disk[TRAIN_FILE]) == 2
+    assert on_disk[EVAL_FILE] == [list(EVAL_COLUMNS), ["0"] * len(EVAL_COLUMNS)]  # its own row too
     logger.close()

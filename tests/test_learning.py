@@ -58,7 +58,7 @@ def test_tabular_learns_easy_small_optimally(tmp_path):
     # With w_q = 1 the smart start state settles next to G once G is known, and the route the agent then always
     # takes is 2 steps longer than optimal (see the README's results). Like Keulen's tabular agent on Easy (9 of 10
     # seeds optimal in our sweep), a seed can settle on a slightly longer route for a while: three seeds, every one
-    # must learn a greedy path to G, and most the shortest.
+    # must learn a greedy path to G, and most learn the shortest by the rule.
     finals = []
     for seed in range(3):
         cfg = compose_cfg(
@@ -73,19 +73,22 @@ def test_tabular_learns_easy_small_optimally(tmp_path):
         lengths = np.loadtxt(tmp_path / str(seed) / "eval.csv", delimiter=",", skiprows=1, usecols=2)
         assert lengths[0] == 1000  # the untrained greedy policy does not reach G
         assert summary["optimal_length"] == 19
-        finals.append(summary["final_eval_length"])
-    assert all(length < 1000 for length in finals), finals  # the greedy path reaches G in every seed ...
-    assert sum(length == 19 for length in finals) >= 2, finals  # ... and is the shortest in most
+        finals.append((summary["final_eval_length"], summary["learned_env_step"]))
+    assert all(length < 1000 for length, _ in finals), finals  # the greedy path reaches G in every seed ...
+    assert sum(learned is not None for _, learned in finals) >= 2, finals  # ... and most learn it by the rule
 
 
 def test_dqn_her_learns_easy_small_optimally(tmp_path):
-    cfg = compose_cfg("+experiment=easy_small_dqn_her", "seed=1", "agent.train_freq=4", "trainer.total_env_steps=12000")
+    """The replay-only DQN+HER, one update per 4 env steps: seed 1 first takes the 19-step path at 11,005 env steps
+    and keeps it to the end of the 16k budget (measured at 049f84d), so the rule's last quarter is all within bound."""
+    cfg = compose_cfg("+experiment=easy_small_dqn_her", "seed=1", "agent.train_freq=4", "trainer.total_env_steps=16000")
     summary = Trainer(cfg, tmp_path).train()
     assert summary["first_goal_env_step"] is not None
     lengths = np.loadtxt(tmp_path / "eval.csv", delimiter=",", skiprows=1, usecols=2)
     assert lengths[0] == 1000  # the untrained greedy policy does not reach G ...
-    assert lengths.min() == 19  # ... the trained one takes the shortest path
-    assert summary["final_eval_length"] <= 21
+    # ... the trained one has learned by the rule: the shortest path in 90% of the last quarter's evaluations
+    assert summary["learned_env_step"] is not None and summary["last_quarter_within"] >= 0.9, summary
+    assert summary["final_eval_length"] == 19
 
 
 def test_replay_only_ss_her_learns_easy_small_by_the_rule(tmp_path):

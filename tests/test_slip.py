@@ -19,6 +19,7 @@ from ss_drl.envs.batched import BatchedMazeEnv
 from ss_drl.envs.gridworld import MazeEnv
 from ss_drl.envs.maze import action_probabilities, parse_maze
 from ss_drl.evaluate import main as evaluate_main
+from ss_drl.smart_start import CountModel
 from ss_drl.training.outputs import EVAL_FILE, SUMMARY_FILE
 from ss_drl.training.trainer import dqn_settings
 
@@ -168,6 +169,11 @@ def test_a_run_with_slips_resumes_as_if_uninterrupted_and_lists_its_bounds(tmp_p
         assert abs(float(row["eval_success_rate"]) * 48 - round(float(row["eval_success_rate"]) * 48)) < 0.01
     for row in evals:  # success is "every episode reached G"
         assert (row["eval_success"] == "1") == (float(row["eval_success_rate"]) == 1.0)
+    # The moves did slip in training: some (s, a) was seen to lead to two cells.
+    saved = torch.load(full / "checkpoint.pt", weights_only=False)["counts"]
+    counts = CountModel(saved["n_states"], saved["n_actions"])
+    counts.load_state_dict(saved)
+    assert not counts.structure().deterministic
     # evaluate.py evaluates as the trainer does: 48 episodes in the env's dynamics, against the same optimum.
     assert evaluate_main([str(full), "--out", str(tmp_path / "greedy.png")]) == 0
     out = capsys.readouterr().out.splitlines()
