@@ -80,6 +80,57 @@ def test_doorkey_states_hold_the_door_and_the_key():
     assert pickup < unlock
 
 
+def _minigrid_state(env) -> tuple:
+    """What MiniGrid itself holds of the agent's situation: cell, direction, each door (open, locked), the carried
+    object's type; read from the env, not from the adapter."""
+    doors = tuple((bool(o.is_open), bool(o.is_locked)) for o in env.grid.grid if o is not None and o.type == "door")
+    carrying = None if env.carrying is None else env.carrying.type
+    return int(env.agent_pos[0]), int(env.agent_pos[1]), int(env.agent_dir), doors, carrying
+
+
+def test_the_doorkey_optimum_is_minigrids_own_fewest_actions():
+    """DoorKey-5x5 layout 0, checked in MiniGrid alone: a breadth-first search over deep copies of a fresh env (its
+    own step, the five actions the adapter keeps) finds the goal in exactly as many actions as the adapter's
+    optimum, 11; and the adapter's shortest path, replayed in a fresh env, picks up the key and unlocks the door
+    where the adapter's states say it does, and ends on the goal at its last step."""
+    import copy
+    from collections import deque
+
+    task = MiniGridTask(DOORKEY, 0)
+    assert task.shortest_path_length == 11
+    env = gym.make(DOORKEY, max_steps=1000).unwrapped
+    env.reset(seed=0)
+    frontier, seen, depth = deque([(env, 0)]), {_minigrid_state(env)}, None
+    while frontier and depth is None:
+        node, d = frontier.popleft()
+        for a in ACTIONS:
+            child = copy.deepcopy(node)
+            _, _, terminated, _, _ = child.step(a)
+            if terminated:
+                depth = d + 1 if child.grid.get(*child.agent_pos).type == "goal" else None
+                if depth is not None:
+                    break
+                continue
+            key = _minigrid_state(child)
+            if key not in seen:
+                seen.add(key)
+                frontier.append((child, d + 1))
+    assert depth == 11
+    replay = gym.make(DOORKEY, max_steps=1000).unwrapped
+    replay.reset(seed=0)
+    table, state = task.transition_table(), task.start_state
+    actions = shortest_actions(task)
+    for i, a in enumerate(actions):
+        _, _, terminated, _, _ = replay.step(ACTIONS[a])
+        state = int(table[state, a])
+        x, y, direction, doors, carrying = _minigrid_state(replay)
+        key = task.keys[state]
+        assert (x, y, direction) == (key.x, key.y, key.direction)
+        assert (carrying == "key") == (key.carrying == 1)
+        assert doors == ((key.doors[0] == 0, key.doors[0] == 2),)  # code 0 open, 2 locked
+        assert terminated == (i == len(actions) - 1)
+
+
 def test_state_ids_are_the_same_in_every_build_and_after_reset():
     """Ids come from the search from the start, so two builds of a layout number every state alike; each reset of
     the batched env puts every copy in the start state, id 0."""
