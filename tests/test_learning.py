@@ -80,7 +80,7 @@ def test_tabular_learns_easy_small_optimally(tmp_path):
 
 def test_dqn_her_learns_easy_small_optimally(tmp_path):
     """The replay-only DQN+HER, one update per 4 env steps: seed 1 first takes the 19-step path at 11,005 env steps
-    and keeps it to the end of the 16k budget (measured at 049f84d), so the rule's last quarter is all within bound."""
+    and keeps it to the end of the 16k budget (measured at e46c275), so the rule's last quarter is all within bound."""
     cfg = compose_cfg("+experiment=easy_small_dqn_her", "seed=1", "agent.train_freq=4", "trainer.total_env_steps=16000")
     summary = Trainer(cfg, tmp_path).train()
     assert summary["first_goal_env_step"] is not None
