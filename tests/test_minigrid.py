@@ -440,6 +440,54 @@ def test_greedy_path_guided_phase_ends_in_the_very_state_not_its_cell():
     assert ss.arrived(target, target, torch.tensor([True])).tolist() == [True]
 
 
+def test_greedy_path_guided_phase_walks_to_the_very_state_then_takes_its_untried_move():
+    """DoorKey-5x5 layout 0 with every move counted but one: the shortest path's move in a state x that the path
+    enters by a turn, so that the state before it lies in x's cell. The evaluated network's greedy policy is the
+    shortest path, so ``greedy_path`` sends the guided phase to x. Walked along the true transitions, the phase
+    passes the state before x (same cell, another direction) and ends in x itself; the next action is the untried
+    move."""
+    from ss_drl.smart_start import Planner, SmartStart
+
+    task = minigrid_task(DOORKEY, 0)
+    table, dist = task.transition_table(), task.distances_to_goal()
+    path, states = shortest_actions(task), [task.start_state]
+    for a in path:
+        states.append(int(table[states[-1], a]))
+    cell = task.state_cell
+    i = next(i for i in range(1, len(path)) if cell[states[i]] == cell[states[i - 1]])  # entered by a turn
+    x, move = states[i], path[i]
+    counts = CountModel(task.n_states, task.n_actions)
+    s, a = np.divmod(np.arange(task.n_states * task.n_actions), task.n_actions)
+    keep = ~((s == x) & (a == move))
+    s, a = torch.from_numpy(s[keep]), torch.from_numpy(a[keep])
+    s2 = torch.from_numpy(table[s.numpy(), a.numpy()])
+    counts.update(s, a, s2, (task.cells(s2) == task.goal_cell).to(torch.float32))
+
+    def greedy(states_, goals):  # the shortest path's action is the greedy one (the first on ties, as path's)
+        q = -torch.from_numpy(dist[table[states_.numpy()]]).to(torch.float32)
+        return q.unsqueeze(0).expand(goals.numel(), -1, -1)
+
+    ss = SmartStart(
+        task, counts, 1, eta=1.0, c_ss=0.1, w_q=0.0, theta=0, planner=Planner(task.width, cells=task.cells),
+        generator=torch.Generator().manual_seed(0), greedy_path=True, max_steps=100,
+    )  # fmt: skip
+    one = torch.ones(1, dtype=torch.bool)
+    ss.end_episodes(one)
+    zeros = lambda states_, goals: torch.zeros(goals.numel(), states_.numel(), task.n_actions)  # noqa: E731
+    ss.start_episodes(one, torch.tensor([task.start_state]), torch.tensor([task.goal_cell]), zeros, greedy)
+    assert ss.target.tolist() == [x] and ss.exact.tolist() == [True] and ss.greedy_path_decisions == 1
+    state, walked, none = task.start_state, [task.start_state], torch.tensor([-1])
+    while bool(ss.active.any()):
+        was_active = ss.active.clone()
+        action = int(ss.guide(torch.tensor([state]), none)[0])
+        state = int(table[state, action])
+        walked.append(state)
+        ss.after_step(was_active, torch.tensor([state]), torch.tensor([False]))
+        assert len(walked) <= len(path) + 1
+    assert states[i - 1] in walked and walked[-1] == x  # past x's cell in another direction, ended in x itself
+    assert int(ss.guide(torch.tensor([x]), none)[0]) == move
+
+
 @pytest.mark.slow
 def test_greedy_path_runs_on_minigrid_and_resumes_as_if_uninterrupted(tmp_path):
     """``smart_start.greedy_path`` on DoorKey-5x5 (states that are not cells; the guided phase then ends in the very
