@@ -40,6 +40,27 @@ def shortest_actions(task: MiniGridTask) -> list[int]:
     return actions
 
 
+def _minigrid_state(env) -> tuple:
+    """What MiniGrid itself holds of the agent's situation: cell, direction, each door (open, locked), the carried
+    object's type; read from the env, not from the adapter."""
+    doors = tuple((bool(o.is_open), bool(o.is_locked)) for o in env.grid.grid if o is not None and o.type == "door")
+    carrying = None if env.carrying is None else env.carrying.type
+    return int(env.agent_pos[0]), int(env.agent_pos[1]), int(env.agent_dir), doors, carrying
+
+
+def replay_shortest_path(task: MiniGridTask, env_id: str, layout_seed: int = 0):
+    """The task's shortest path replayed in a fresh MiniGrid env (its own reset with the layout seed, its own step
+    and reward): per action, ``(the adapter's next state, MiniGrid's own state after the step (:func:`_minigrid_state`),
+    reward, terminated, truncated)``."""
+    env = gym.make(env_id, max_steps=1000).unwrapped
+    env.reset(seed=layout_seed)
+    table, state = task.transition_table(), task.start_state
+    for a in shortest_actions(task):
+        _, reward, terminated, truncated, _ = env.step(ACTIONS[a])
+        state = int(table[state, a])
+        yield state, _minigrid_state(env), reward, terminated, truncated
+
+
 # --- the state graph -------------------------------------------------------------------------------------------------
 def test_the_bfs_optimum_on_fourrooms_layout_0_is_a_path_replayed_in_minigrid():
     """The optimum is the fewest actions from the start to the goal square on the true state graph. Replayed in a
@@ -48,15 +69,13 @@ def test_the_bfs_optimum_on_fourrooms_layout_0_is_a_path_replayed_in_minigrid():
     task = MiniGridTask(FOURROOMS, 0)
     actions = shortest_actions(task)
     assert len(actions) == task.shortest_path_length == 15
-    env = gym.make(FOURROOMS, max_steps=1000).unwrapped
-    env.reset(seed=0)
-    table, state = task.transition_table(), task.start_state
-    for i, a in enumerate(actions):
-        _, reward, terminated, truncated, _ = env.step(ACTIONS[a])
-        state = int(table[state, a])
+    table = task.transition_table()
+    steps = list(replay_shortest_path(task, FOURROOMS))
+    for i, (state, seen, _, terminated, truncated) in enumerate(steps):
         key = task.keys[state]
-        assert (int(env.agent_pos[0]), int(env.agent_pos[1]), int(env.agent_dir)) == (key.x, key.y, key.direction)
+        assert seen[:3] == (key.x, key.y, key.direction)
         assert terminated == (i == len(actions) - 1) and not truncated
+    state, _, reward, _, _ = steps[-1]
     assert reward == pytest.approx(1 - 0.9 * 15 / 1000) == task.minigrid_return(True, 15, 1000)
     assert task.cells(torch.tensor([state])).item() == task.goal_cell
     # No shorter path: every state one step from the start is at least 14 steps from the goal.
@@ -78,14 +97,6 @@ def test_doorkey_states_hold_the_door_and_the_key():
     pickup = next(i for i, k in enumerate(seen) if k.carrying == 1)
     unlock = next(i for i, k in enumerate(seen) if k.doors == (0,))
     assert pickup < unlock
-
-
-def _minigrid_state(env) -> tuple:
-    """What MiniGrid itself holds of the agent's situation: cell, direction, each door (open, locked), the carried
-    object's type; read from the env, not from the adapter."""
-    doors = tuple((bool(o.is_open), bool(o.is_locked)) for o in env.grid.grid if o is not None and o.type == "door")
-    carrying = None if env.carrying is None else env.carrying.type
-    return int(env.agent_pos[0]), int(env.agent_pos[1]), int(env.agent_dir), doors, carrying
 
 
 def test_the_doorkey_optimum_is_minigrids_own_fewest_actions():
@@ -116,19 +127,13 @@ def test_the_doorkey_optimum_is_minigrids_own_fewest_actions():
                 seen.add(key)
                 frontier.append((child, d + 1))
     assert depth == 11
-    replay = gym.make(DOORKEY, max_steps=1000).unwrapped
-    replay.reset(seed=0)
-    table, state = task.transition_table(), task.start_state
-    actions = shortest_actions(task)
-    for i, a in enumerate(actions):
-        _, _, terminated, _, _ = replay.step(ACTIONS[a])
-        state = int(table[state, a])
-        x, y, direction, doors, carrying = _minigrid_state(replay)
+    for i, (state, seen, _, terminated, _) in enumerate(replay_shortest_path(task, DOORKEY)):
+        x, y, direction, doors, carrying = seen
         key = task.keys[state]
         assert (x, y, direction) == (key.x, key.y, key.direction)
         assert (carrying == "key") == (key.carrying == 1)
         assert doors == ((key.doors[0] == 0, key.doors[0] == 2),)  # code 0 open, 2 locked
-        assert terminated == (i == len(actions) - 1)
+        assert terminated == (i == task.shortest_path_length - 1)
 
 
 def test_state_ids_are_the_same_in_every_build_and_after_reset():
@@ -457,11 +462,8 @@ def test_greedy_path_guided_phase_walks_to_the_very_state_then_takes_its_untried
     i = next(i for i in range(1, len(path)) if cell[states[i]] == cell[states[i - 1]])  # entered by a turn
     x, move = states[i], path[i]
     counts = CountModel(task.n_states, task.n_actions)
-    s, a = np.divmod(np.arange(task.n_states * task.n_actions), task.n_actions)
-    keep = ~((s == x) & (a == move))
-    s, a = torch.from_numpy(s[keep]), torch.from_numpy(a[keep])
-    s2 = torch.from_numpy(table[s.numpy(), a.numpy()])
-    counts.update(s, a, s2, (task.cells(s2) == task.goal_cell).to(torch.float32))
+    every_move = [(s, a) for s in range(task.n_states) for a in range(task.n_actions)]
+    observe_in(task, counts, [pair for pair in every_move if pair != (x, move)])
 
     def greedy(states_, goals):  # the shortest path's action is the greedy one (the first on ties, as path's)
         q = -torch.from_numpy(dist[table[states_.numpy()]]).to(torch.float32)
