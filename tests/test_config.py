@@ -693,21 +693,3 @@ def test_the_readme_configuration_reference_names_every_key():
     assert len(named) == len(per_row), "a key has two lines"
     assert sorted(keys - named) == []
     assert sorted(named - keys) == []
-
-
-@pytest.mark.parametrize(
-    "experiment, overrides",
-    [
-        ("easy_small_ss_her", []),  # the paper's Smart Start: the epsilon-greedy policy acts after S_ss
-        ("easy_small_ss_her_bounded", ["smart_start.explore_from_start=false"]),  # the first episode's policy acts
-        ("easy_small_ss_her_bounded", ["smart_start.eta=0"]),  # no Smart Start
-        ("easy_small_dqn_her_bounded", []),
-    ],
-)
-def test_updates_from_goal_needs_smart_start_to_choose_every_action_before_the_goal(experiment, overrides):
-    cfg = compose_cfg(experiment, [*overrides, "smart_start.updates_from_goal=true"])
-    with pytest.raises(
-        ConfigError, match=r"^smart_start.updates_from_goal: true needs smart_start.eta > 0, explore=frontier and "
-    ):
-        validate_config(cfg)
-    validate_config(compose_cfg("easy_small_ss_her_bounded", ["smart_start.updates_from_goal=true"]))

@@ -291,27 +291,3 @@ def test_summary_lists_the_bounds_in_force(tmp_path, experiment, bounds):
     name, *overrides = experiment.split()
     trainer = Trainer(compose_cfg(f"+experiment={name}", *overrides), tmp_path)
     assert trainer.summary(completed=False, wall=1.0)["bounds_in_force"] == bounds
-
-
-@pytest.mark.slow  # two training runs
-def test_updates_from_goal_makes_no_update_before_the_first_goal_and_changes_nothing_before_it(tmp_path):
-    """``smart_start.updates_from_goal``: before the goal is first reached Smart Start chooses every action, so the
-    run without updates takes the same episodes up to the first goal as the run with them; its first update comes in
-    the batch after the one that reached G, and from there one update per env step."""
-    from ss_drl.training.outputs import TRAIN_FILE
-
-    common = ["+experiment=easy_small_ss_her_bounded", "trainer.total_env_steps=1200", "trainer.log_interval=10"]
-    common += [*SMALL, "env.max_steps=200"]
-    Trainer(compose_cfg(*common), tmp_path / "always").train()
-    trainer = Trainer(compose_cfg(*common, "smart_start.updates_from_goal=true"), tmp_path / "from_goal")
-    summary = trainer.train()
-    first_goal, episode = summary["first_goal_env_step"], summary["first_goal_episode"]
-    assert first_goal is not None and first_goal > 100  # updates would have begun before it (learning_starts 100)
-    always, from_goal = episode_rows(tmp_path / "always"), episode_rows(tmp_path / "from_goal")
-    assert from_goal[: episode + 1] == always[: episode + 1]  # the header and every episode up to the first goal
-    rows = [line.split(",") for line in (tmp_path / "from_goal" / TRAIN_FILE).read_text().splitlines()[1:]]
-    env_steps, updates = [int(r[0]) for r in rows], [int(r[1]) for r in rows]
-    # The first row after 10 updates: the updates began with the first batch that ended after the first goal.
-    assert first_goal < env_steps[0] <= first_goal + 16 + 10
-    assert updates[-1] == pytest.approx(1200 - first_goal, abs=16)
-    assert trainer.agent.updates == updates[-1]

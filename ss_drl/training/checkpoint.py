@@ -340,7 +340,6 @@ ADDED_KEYS = {
     ("smart_start", "guided_limit"): None,  # 4d36adf (a limit only under slips, which did not exist)
     ("smart_start", "explore_from_start"): False,  # ed255e7
     ("smart_start", "greedy_path"): False,  # cde4c7c
-    ("smart_start", "updates_from_goal"): False,  # session 49
 }
 
 

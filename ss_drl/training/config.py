@@ -251,14 +251,6 @@ def _trainer_and_learner(cfg: DictConfig) -> None:
     _boolean(cfg, "smart_start.explore_after_goal")
     _boolean(cfg, "smart_start.explore_from_start")
     _boolean(cfg, "smart_start.greedy_path")
-    _boolean(cfg, "smart_start.updates_from_goal")
-    if cfg.smart_start.updates_from_goal and not (
-        cfg.smart_start.eta > 0 and cfg.smart_start.explore == "frontier" and cfg.smart_start.explore_from_start
-    ):
-        raise ConfigError(
-            "smart_start.updates_from_goal: true needs smart_start.eta > 0, explore=frontier and "
-            "explore_from_start=true (otherwise the network chooses actions before the goal is reached)"
-        )
     if cfg.smart_start.greedy_path and "deterministic" not in environment_assumptions(cfg.env):
         raise ConfigError(
             "smart_start.greedy_path: true needs deterministic moves (env.slip is "

@@ -7,8 +7,7 @@ One iteration of :meth:`Trainer.train`, read top to bottom:
    the agent's epsilon-greedy phase takes over. A batch ends where an episode ends.
 2. **Count model**: every transition of the batch is counted (Smart Start reads the counts at the next episode start).
 3. **Replay buffer**: ``agent.store(batch)`` (the DQN's HER buffer; the table queues the batch).
-4. **Updates**: the ``agent.updates_due(...)`` learning updates (with ``smart_start.updates_from_goal``, none before
-   the goal is first reached); each returns its metrics as a tensor (no host sync).
+4. **Updates**: the ``agent.updates_due(...)`` learning updates; each returns its metrics as a tensor (no host sync).
 5. **Log**: every ``log_interval`` updates a row of train.csv and W&B ``train/`` (the loss is checked for NaN then);
    every finished episode a row of episodes.csv; every ``eval_interval`` env steps a greedy episode from S to
    eval.csv; every ``checkpoint_interval`` env steps an atomic checkpoint.
@@ -271,7 +270,6 @@ class Trainer:
         (self.run_dir / FAILED_FILE).unlink(missing_ok=True)
         self._stop_signal = None
         self.update_log: UpdateLog | None = None
-        self._updates_wait = self.smart_start is not None and bool(cfg.smart_start.updates_from_goal)
 
     # --- the loop ----------------------------------------------------------------------------------------------
     def train(self) -> dict:
@@ -303,8 +301,8 @@ class Trainer:
                 )
                 # 3. Replay buffer.
                 agent.store(batch)
-                # 4. Updates (with smart_start.updates_from_goal, none until the goal has been reached).
-                for _ in range(agent.updates_due(collector.env_steps, batch.numel()) if self._learning() else 0):
+                # 4. Updates.
+                for _ in range(agent.updates_due(collector.env_steps, batch.numel())):
                     update_log.add(agent.update())
                     # 5. Log: learning metrics every log_interval updates.
                     if agent.updates >= self.next_log:
@@ -341,15 +339,6 @@ class Trainer:
         finally:
             bar.close()
             self._restore_signal_handlers(handlers)
-
-    def _learning(self) -> bool:
-        """Whether learning updates are made now: always, except with ``smart_start.updates_from_goal`` before the
-        goal has first been reached (Smart Start then chooses every action, so the updates would change nothing the
-        agent does before it). Read from the count model, so that a resumed run decides alike."""
-        if not self._updates_wait:
-            return True
-        self._updates_wait = not self.smart_start.goal_found()
-        return not self._updates_wait
 
     # --- logging -----------------------------------------------------------------------------------------------
     def _log_updates(self, update_log: UpdateLog) -> None:
