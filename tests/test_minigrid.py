@@ -71,9 +71,9 @@ def test_the_bfs_optimum_on_fourrooms_layout_0_is_a_path_replayed_in_minigrid():
     assert len(actions) == task.shortest_path_length == 15
     table = task.transition_table()
     steps = list(replay_shortest_path(task, FOURROOMS))
-    for i, (state, seen, _, terminated, truncated) in enumerate(steps):
+    for i, (state, in_minigrid, _, terminated, truncated) in enumerate(steps):
         key = task.keys[state]
-        assert seen[:3] == (key.x, key.y, key.direction)
+        assert in_minigrid[:3] == (key.x, key.y, key.direction)
         assert terminated == (i == len(actions) - 1) and not truncated
     state, _, reward, _, _ = steps[-1]
     assert reward == pytest.approx(1 - 0.9 * 15 / 1000) == task.minigrid_return(True, 15, 1000)
@@ -117,9 +117,9 @@ def test_the_doorkey_optimum_is_minigrids_own_fewest_actions():
         for a in ACTIONS:
             child = copy.deepcopy(node)
             _, _, terminated, _, _ = child.step(a)
-            if terminated:
-                depth = d + 1 if child.grid.get(*child.agent_pos).type == "goal" else None
-                if depth is not None:
+            if terminated:  # on the goal square, or an episode ended elsewhere (not a state to search on)
+                if child.grid.get(*child.agent_pos).type == "goal":
+                    depth = d + 1
                     break
                 continue
             key = _minigrid_state(child)
@@ -127,8 +127,8 @@ def test_the_doorkey_optimum_is_minigrids_own_fewest_actions():
                 seen.add(key)
                 frontier.append((child, d + 1))
     assert depth == 11
-    for i, (state, seen, _, terminated, _) in enumerate(replay_shortest_path(task, DOORKEY)):
-        x, y, direction, doors, carrying = seen
+    for i, (state, in_minigrid, _, terminated, _) in enumerate(replay_shortest_path(task, DOORKEY)):
+        x, y, direction, doors, carrying = in_minigrid
         key = task.keys[state]
         assert (x, y, direction) == (key.x, key.y, key.direction)
         assert (carrying == "key") == (key.carrying == 1)

@@ -577,11 +577,10 @@ class TDTarget:
     targets' successors of the actions not taken) goes through one call of the bootstrap, so one batched pass of the
     target network and one of the online network (double DQN) per update. The taken action's successor is left out
     of it: what that action is held to is never used (the loss regresses it on the target), so its held entry is its
-    prediction clamped into the bounds, as for an untried action. The other rows' values are the same numbers to float
-    rounding (see ``fused``; on the development machine the runs came out the same bit for bit, docs/notebook,
-    session 48). ``fused=False`` makes the model targets' successors a call of
-    their own: the same numbers to float rounding (a matrix product's sums can round differently with the batch's
-    size; on the development machine the runs came out the same bit for bit, docs/notebook, session 36).
+    prediction clamped into the bounds, as for an untried action. ``fused=False`` makes the model targets' successors
+    a call of their own. Either change of the rows leaves the other rows' values the same numbers to float rounding (a
+    matrix product's sums can round differently with the batch's size; on the development machine the runs came out
+    the same bit for bit, docs/notebook, sessions 36 and 48).
     ``successor_double=False`` values the successors by the target network's own max, so that the online network's
     pass covers the window's states only (``agent.successor_double_dqn``).
     """
