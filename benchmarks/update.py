@@ -54,7 +54,7 @@ VARIANTS = (SOFT_UPDATE, SEPARATE, PER_ROW)
 
 
 def switches_on(settings) -> list[str]:
-    """The TD target's switches (bounds and their modifiers) that are on in ``settings`` (a ``DQNSettings``)."""
+    """The TD target's switches (bounds and their modifiers), and the policy that reads them, on in ``settings``."""
     from ss_drl.agents.targets import assumptions
 
     return list(assumptions(settings))

@@ -37,6 +37,7 @@ NO_COUNT_MODEL = [
     "agent.bound_all_actions=false",
     "agent.model_targets=false",
     "agent.optimistic_floor=false",
+    "agent.bounded_policy=false",
 ]
 
 #: The spec: steps on a shortest S -> G path of every shipped maze.

@@ -172,7 +172,7 @@ def test_her_section_quick_times_the_stated_samples(monkeypatch):
     assert f"median of {samples} samples, median of {repeats} repeats" in text
 
 
-#: The TD target's switches (bounds and their modifiers) of ``DQNSettings``.
+#: The TD target's switches (bounds and their modifiers) of ``DQNSettings``, and the policy that reads them.
 SWITCHES = (
     "hindsight_bound",
     "n_step_max",
@@ -181,6 +181,7 @@ SWITCHES = (
     "bound_all_actions",
     "model_targets",
     "optimistic_floor",
+    "bounded_policy",
 )
 
 

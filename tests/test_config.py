@@ -33,9 +33,16 @@ MINIGRID = {
     "multiroom_n6": "multiroom_n6",
     "doorkey_8x8": "doorkey_8x8",
 }
-#: Every switch of the DQN learner that reads the count model (those that make a learner the model-bounded one, and
-#: the two that only refine them).
-COUNT_MODEL_SWITCHES = ("distance_floor", "distance_ceiling", "model_targets", "bound_all_actions", "optimistic_floor")
+#: Every switch of the DQN learner that reads the count model (those that make a learner the model-bounded one, the
+#: two that only refine them, and the policy that reads them).
+COUNT_MODEL_SWITCHES = (
+    "distance_floor",
+    "distance_ceiling",
+    "model_targets",
+    "bound_all_actions",
+    "optimistic_floor",
+    "bounded_policy",
+)
 
 STABLE_KEYS = (
     "seed",
@@ -404,6 +411,13 @@ def test_bound_all_actions_needs_a_distance_bound():
     )
     assert_config_error(compose_cfg(overrides=["agent.bound_all_actions=yes"]), "agent.bound_all_actions", "yes")
     assert_config_error(compose_cfg(overrides=["agent.model_targets=1"]), "agent.model_targets", "1")
+
+
+def test_bounded_policy_needs_the_bounds_on_every_action():
+    with pytest.raises(ConfigError, match=r"^agent.bounded_policy: needs agent.bound_all_actions"):
+        validate_config(compose_cfg("easy_ss_her", ["agent.bounded_policy=true"]))  # replay-only: no all-action bound
+    validate_config(compose_cfg("easy_ss_her_bounded", ["agent.bounded_policy=true"]))
+    assert_config_error(compose_cfg(overrides=["agent.bounded_policy=1"]), "agent.bounded_policy", "1")
 
 
 def test_optimistic_floor_needs_both_distance_bounds():

@@ -36,6 +36,7 @@ from ss_drl.agents.targets import (
 from ss_drl.envs.maze import load_maze
 from ss_drl.her import HindsightReplayBuffer
 from ss_drl.smart_start import CountModel
+from ss_drl.training.greedy import greedy_accuracy, greedy_policy
 
 #: The plain DQN these tests compute by hand (0/1 rewards, gamma < 1, TD(0), no clipping); each test adds its own.
 PLAIN = {  # TD(0) on 0/1 rewards with hard target copies: the setting the hand computations below are written for
@@ -731,6 +732,63 @@ def test_distance_floor_lifts_the_targets_for_g_and_joins_the_hindsight_bound():
     expected = torch.maximum(torch.maximum(y, hindsight), floors)
     torch.testing.assert_close(taken(agent, batch), expected)
     torch.testing.assert_close(agent.loss(batch)["loss"], td_loss(agent, batch, expected))
+
+
+# --- the policy held to the bounds (agent.bounded_policy) ------------------------------------------------------------
+def full_counts(maze) -> CountModel:
+    """A count model that has tried every move from every free cell but G: its floor and ceiling are then exact."""
+    table = maze.transition_table()
+    dist = maze.distances_to_goal()
+    cells = [c for c in range(maze.n_cells) if dist[c] > 0]
+    s = torch.tensor(cells).repeat_interleave(4)
+    a = torch.arange(4).repeat(len(cells))
+    counts = CountModel(maze.n_cells)
+    counts.update(s, a, torch.as_tensor(table[s.numpy(), a.numpy()]), torch.zeros(len(s)))
+    return counts
+
+
+@pytest.mark.parametrize("bounded_policy", [True, False], ids=["bounded_policy", "network_policy"])
+def test_bounded_policy_acts_on_q_for_g_held_to_exact_bounds_by_hand(bounded_policy):
+    """Every move of easy_small tried: the floor and the ceiling of every (s, a) are both 1 + d(s'), s' its
+    successor (itself after a bump), so Q(s||G, a) held to them is -d(s') exactly. The online and target networks
+    prefer "right" everywhere (advantage bias +50). With ``bounded_policy`` the greedy action for G (acting with
+    epsilon 0, the evaluated policy, Smart Start's Q) is one step closer to G from every cell, and Q for G reads
+    -d(s'); for another goal the network's own values stand. Without it, "right" everywhere."""
+    maze = load_maze("easy_small")
+    agent = make_agent(
+        *SHORTEST_PATH,
+        "agent.distance_floor=true",
+        "agent.distance_ceiling=true",
+        "agent.bound_all_actions=true",
+        "agent.model_targets=true",
+        f"agent.bounded_policy={bounded_policy}",
+        counts=full_counts(maze),
+    )
+    assert agent.bounds_in_force[-1:] == (["bounded_policy"] if bounded_policy else ["bound_all_actions"])
+    with torch.no_grad():
+        for net in (agent.q_network, agent.loss.target_value_network.network):
+            net.advantage.bias.copy_(torch.tensor([50.0, 0.0, 0.0, 0.0]))
+    dist, table = maze.distances_to_goal(), maze.transition_table()
+    cells = torch.tensor([c for c in range(maze.n_cells) if dist[c] > 0])
+    goal = torch.full_like(cells, maze.goal_cell)
+    agent.epsilon = 0.0
+    actions = agent.act(cells, goal)
+    closer = dist[table[cells.numpy(), actions.numpy()]] == dist[cells.numpy()] - 1
+    q = agent.policy_q(agent.q_network(cells, goal).detach(), cells, goal)
+    exact = -torch.as_tensor(dist[table[cells.numpy()]], dtype=torch.float32)  # (n, 4): -d(s')
+    policy = greedy_policy(agent, maze)
+    if bounded_policy:
+        assert bool(closer.all())
+        torch.testing.assert_close(q, exact)
+        assert greedy_accuracy(policy, maze) == 1.0
+        env_q = agent.greedy_q_values(cells, torch.tensor([maze.goal_cell]))[0]
+        torch.testing.assert_close(env_q, agent.env_scale(exact))
+    else:
+        assert bool((actions == 0).all()) and not bool(closer.all())
+        assert greedy_accuracy(policy, maze) < 0.5
+    other = torch.full_like(cells, int(cells[0]))  # a goal that is not G: no bound, the network's values
+    raw = agent.q_network(cells, other).detach()
+    torch.testing.assert_close(agent.policy_q(raw, cells, other), raw)
 
 
 # --- the bounds on every action (agent.bound_all_actions) -----------------------------------------------------------

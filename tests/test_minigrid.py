@@ -419,7 +419,7 @@ def test_a_minigrid_run_resumes_as_if_uninterrupted(tmp_path, capsys):
     summary = json.loads((full / SUMMARY_FILE).read_text())
     assert summary["maze"] == DOORKEY and summary["optimal_length"] == 11
     bounds = ["hindsight_bound", "distance_floor", "distance_ceiling", "model_targets", "optimistic_floor"]
-    assert summary["bounds_in_force"] == [*bounds, "bound_all_actions"]
+    assert summary["bounds_in_force"] == [*bounds, "bound_all_actions", "bounded_policy"]
     assert (full / "smart_start.png").is_file()  # visit counts per cell
     # evaluate.py draws the MiniGrid frame with the greedy path.
     assert evaluate_main([str(full), "--out", str(tmp_path / "greedy.png")]) == 0

@@ -474,9 +474,9 @@ def test_bounds_whose_assumption_breaks_are_turned_off_in_one_line():
     settings = bounded_settings()
     stochastic, lines = resolve_bounds(settings, MAZE - {"deterministic"})
     on = ("hindsight_bound", "distance_floor", "distance_ceiling", "bound_all_actions", "model_targets")
-    assert not any(getattr(stochastic, key) for key in (*on, "optimistic_floor"))
+    assert not any(getattr(stochastic, key) for key in (*on, "optimistic_floor", "bounded_policy"))
     assert len(lines) == 1 and len(lines[0].splitlines()) == 1 and "deterministic moves" in lines[0]
-    assert _turned_off(lines[0]) == {f"agent.{key}" for key in (*on, "optimistic_floor")}
+    assert _turned_off(lines[0]) == {f"agent.{key}" for key in (*on, "optimistic_floor", "bounded_policy")}
     gridless, lines = resolve_bounds(settings, MAZE - {"grid_four_moves"})
     assert (gridless.distance_ceiling, gridless.optimistic_floor) == (False, False)
     assert gridless.distance_floor and gridless.model_targets and gridless.hindsight_bound
@@ -487,6 +487,18 @@ def test_bounds_whose_assumption_breaks_are_turned_off_in_one_line():
     assert (off.hindsight_bound, off.n_step_max) == (False, False)
     assert _turned_off(lines[0]) == {"agent.hindsight_bound", "agent.n_step_max"}
     assert dataclasses.replace(off, hindsight_bound=True, n_step_max=True) == replay_only
+
+
+def test_the_bounded_policy_goes_with_the_bounds_it_reads():
+    """``bounded_policy`` assumes what the all-action bounds do: under slips it is turned off with them, in the same
+    line, and set on the command line it is refused."""
+    settings = dataclasses.replace(bounded_settings(), bounded_policy=True)
+    assert resolve_bounds(settings, MAZE) == (settings, [])
+    stochastic, lines = resolve_bounds(settings, MAZE - {"deterministic"})
+    assert not stochastic.bounded_policy and not stochastic.bound_all_actions
+    assert len(lines) == 1 and {"agent.bounded_policy", "agent.bound_all_actions"} <= _turned_off(lines[0])
+    with pytest.raises(ValueError, match=r"^agent\.bounded_policy=true: this environment breaks"):
+        resolve_bounds(settings, MAZE - {"deterministic"}, explicit=["bounded_policy"])
 
 
 def test_a_bound_the_user_set_explicitly_is_refused_instead():

@@ -276,18 +276,32 @@ def test_episode_rows_record_the_end_cell_and_the_cells_visited_so_far(tmp_path)
                 "model_targets",
                 "optimistic_floor",
                 "bound_all_actions",
+                "bounded_policy",
             ],
         ),  # fmt: skip
         (
-            "easy_small_ss_her_bounded agent.optimistic_floor=false agent.bound_all_actions=false",
+            "easy_small_ss_her_bounded agent.bounded_policy=false",
+            [
+                "hindsight_bound",
+                "distance_floor",
+                "distance_ceiling",
+                "model_targets",
+                "optimistic_floor",
+                "bound_all_actions",
+            ],
+        ),  # fmt: skip
+        (
+            "easy_small_ss_her_bounded agent.optimistic_floor=false agent.bound_all_actions=false "
+            "agent.bounded_policy=false",
             ["hindsight_bound", "distance_floor", "distance_ceiling", "model_targets"],
         ),
         ("easy_small_tabular_ss", []),
     ],
 )
 def test_summary_lists_the_bounds_in_force(tmp_path, experiment, bounds):
-    """``bounds_in_force``: the TD target's bounds the run built, by their switches, then the two switches that
-    shape the floor and ceiling (optimistic_floor, bound_all_actions) where they are on."""
+    """``bounds_in_force``: the TD target's bounds the run built, by their switches, then the switches that shape
+    the floor and ceiling (optimistic_floor, bound_all_actions) and the policy that reads them (bounded_policy)
+    where they are on."""
     name, *overrides = experiment.split()
     trainer = Trainer(compose_cfg(f"+experiment={name}", *overrides), tmp_path)
     assert trainer.summary(completed=False, wall=1.0)["bounds_in_force"] == bounds

@@ -198,6 +198,10 @@ class DQNAgent:
             raise ValueError("agent.hindsight_bound needs a replay buffer built with goal_steps=True")
         if "n_step_max" in td_target.names and not getattr(replay_buffer, "window_states", False):
             raise ValueError("agent.n_step_max needs a replay buffer built with window_states=True")
+        if s.bounded_policy and not td_target.bounds_all_actions:
+            raise ValueError(
+                "agent.bounded_policy needs a TD target whose bounds hold every action (bound_all_actions)"
+            )
         self.loss = GoalDQNLoss(
             self.q_network, td_target, double_dqn=s.double_dqn, loss_function=s.loss, factored=s.factored_bootstrap
         )
@@ -234,6 +238,12 @@ class DQNAgent:
         self.loss.before_target_read = lambda obs, goal: self.tables.catch_up({"state": obs, "goal": goal})
         return [p for p in params if p.data_ptr() not in tables]
 
+    @property
+    def bounds_in_force(self) -> list[str]:
+        """What ``summary.json`` lists as ``bounds_in_force``: the TD target's
+        (:attr:`~ss_drl.agents.targets.TDTarget.in_force`), then ``bounded_policy`` when the policy reads them too."""
+        return self.td_target.in_force + (["bounded_policy"] if self.settings.bounded_policy else [])
+
     # --- acting ------------------------------------------------------------------------------------------------
     @torch.no_grad()
     def act(self, observation: torch.Tensor, desired_goal: torch.Tensor) -> torch.Tensor:
@@ -242,14 +252,32 @@ class DQNAgent:
         The raw network is called directly: at one env copy this runs every env step, and the TensorDict module
         wrappers would cost several times the forward pass itself.
         """
-        greedy = self.q_network(observation, desired_goal).argmax(dim=-1)
-        return epsilon_greedy(greedy, self.epsilon, n_actions=self.maze.n_actions)
+        q = self.policy_q(self.q_network(observation, desired_goal), observation, desired_goal)
+        return epsilon_greedy(q.argmax(dim=-1), self.epsilon, n_actions=self.maze.n_actions)
+
+    def policy_q(self, q: torch.Tensor, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
+        """(R, A) the values the policy takes its greedy action from, for the network's (R, A) ``q`` of the rows
+        (``states``, ``goals``) (R,): ``q`` itself, or with ``agent.bounded_policy`` ``q`` held to the same
+        all-action bounds as the targets (:meth:`~ss_drl.agents.targets.TDTarget.hold`). Where the bounds are valid
+        they contain Q*, so holding an estimate to them never moves it away from Q*: where the count model knows every
+        action's steps to G exactly, the greedy action is a shortest path's whatever the network's error."""
+        if not self.settings.bounded_policy:
+            return q
+        return self.td_target.hold({"observation": states, "desired_goal": goals}, q)
+
+    def _policy_goal_q(self, network, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
+        """(B, n, A) :meth:`policy_q` of ``network`` for every state (n,) and goal (B,), on the learner's scale."""
+        q = network.goal_q_values(states, goals)
+        if not self.settings.bounded_policy:
+            return q
+        rows = (states.repeat(goals.numel()), goals.repeat_interleave(states.numel()))
+        return self.policy_q(q.reshape(-1, q.shape[-1]), *rows).view(q.shape)
 
     @torch.no_grad()
     def q_values(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         """(B, n, 4): Q(s||g, .) on the env's reward scale of every state in ``states`` (n,) for each goal in
         ``goals`` (B,), in one batched pass (:meth:`GoalQNetwork.goal_q_values`)."""
-        return self.env_scale(self.q_network.goal_q_values(states, goals))
+        return self.env_scale(self._policy_goal_q(self.q_network, states, goals))
 
     @torch.no_grad()
     def greedy_q_values(self, states: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
@@ -262,7 +290,7 @@ class DQNAgent:
         network = self.loss.target_value_network.network if self.settings.eval_network == "target" else self.q_network
         if network is not self.q_network and self.tables is not None:
             self.tables.catch_up()
-        return self.env_scale(network.goal_q_values(states, goals))
+        return self.env_scale(self._policy_goal_q(network, states, goals))
 
     def env_scale(self, q: torch.Tensor) -> torch.Tensor:
         """Map the learner's values (reward ``r - step_cost``) to the env's 0/1 reward scale.

@@ -60,6 +60,8 @@ class DQNSettings:
     bound_all_actions: bool
     model_targets: bool
     optimistic_floor: bool
+    # The policy: greedy on Q for G held to the all-action bounds (DQNAgent.policy_q).
+    bounded_policy: bool
 
     @classmethod
     def from_config(cls, node, prefix: str = "agent") -> DQNSettings:

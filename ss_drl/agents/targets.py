@@ -684,11 +684,15 @@ class TDTarget:
         held = q_all.detach()
         if self.model_targets is not None:
             held = self.model_targets(sample, held, succ, succ_values)
-        lowers = [b.lower_all(sample) for b in self.bounds]
-        held = _clamp(held, lowers, [b.upper_all(sample) for b in self.bounds])
-        if self.value_range is not None:
-            held = held.clamp(*self.value_range)
-        return target, held
+        return target, self.hold(sample, held)
+
+    def hold(self, sample, q: torch.Tensor) -> torch.Tensor:
+        """(B, A) ``q``, values of every action of the sample's states for its goals, clamped into the all-action
+        bounds and then the value range (step 3's last part). ``sample``: any mapping with ``observation`` and
+        ``desired_goal`` (B,). With ``agent.bounded_policy`` the learner's policy takes its greedy action from these
+        held values (:meth:`~ss_drl.agents.dqn.DQNAgent.policy_q`)."""
+        q = _clamp(q, [b.lower_all(sample) for b in self.bounds], [b.upper_all(sample) for b in self.bounds])
+        return q if self.value_range is None else q.clamp(*self.value_range)
 
     def taken(self, sample: TensorDictBase, bootstrap: Bootstrap) -> torch.Tensor:
         """(B, 1) the target of the taken action a_t (the first part of :meth:`__call__`)."""
@@ -727,6 +731,8 @@ def assumptions(settings, holds: frozenset[str] = MAZE) -> dict[str, frozenset[s
         out["optimistic_floor"] = DistanceFloor.assumes | ceiling.assumes
     if settings.bound_all_actions:
         out["bound_all_actions"] = frozenset({"count_model", "deterministic"})
+    if settings.bounded_policy:
+        out["bounded_policy"] = frozenset({"count_model", "deterministic"})
     return out
 
 

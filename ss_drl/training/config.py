@@ -224,6 +224,8 @@ def _trainer_and_learner(cfg: DictConfig) -> None:
             raise ConfigError("agent.bound_all_actions: needs agent.distance_floor or agent.distance_ceiling")
         if agent.optimistic_floor and not (agent.distance_floor and agent.distance_ceiling):
             raise ConfigError("agent.optimistic_floor: needs agent.distance_floor and agent.distance_ceiling")
+        if agent.bounded_policy and not agent.bound_all_actions:
+            raise ConfigError("agent.bounded_policy: needs agent.bound_all_actions (the bounds on every action)")
         if agent.sparse_tables and agent.target_update != "soft":
             raise ConfigError("agent.sparse_tables: needs agent.target_update=soft (its Polyak step is lazy)")
         if agent.sparse_tables and agent.encoder == "coords":

@@ -96,7 +96,7 @@ SUMMARY_KEYS = (
     "updates_per_s",
     "smart_start_decisions",  # guided phases started (0 without Smart Start)
     "greedy_path_decisions",  # of them, sent to an untried move on the greedy path (smart_start.greedy_path)
-    "bounds_in_force",  # the TD target's bounds that ran, then optimistic_floor / bound_all_actions if on ([]: none)
+    "bounds_in_force",  # the TD target's bounds that ran, then the switches shaping them (see DQNAgent.bounds_in_force)
     "config",  # the resolved Hydra config
 )
 

@@ -477,7 +477,7 @@ class Trainer:
             "updates_per_s": round(self.agent.updates / max(wall, 1e-9), 1),
             "smart_start_decisions": 0 if self.smart_start is None else self.smart_start.decisions,
             "greedy_path_decisions": 0 if self.smart_start is None else self.smart_start.greedy_path_decisions,
-            "bounds_in_force": list(getattr(getattr(self.agent, "td_target", None), "in_force", [])),
+            "bounds_in_force": list(getattr(self.agent, "bounds_in_force", [])),
             "config": self.resolved,
         }
 
