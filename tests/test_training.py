@@ -263,37 +263,20 @@ def test_episode_rows_record_the_end_cell_and_the_cells_visited_so_far(tmp_path)
     assert cells == sorted(cells) and cells[0] < cells[-1]
 
 
+#: The bounds of the model-bounded learner's TD target, in the order ``bounds_in_force`` lists them.
+TD_BOUNDS = ["hindsight_bound", "distance_floor", "distance_ceiling", "model_targets"]
+
+
 @pytest.mark.parametrize(
     ("experiment", "bounds"),
     [
         ("easy_small_ss_her", ["hindsight_bound", "n_step_max"]),
-        (
-            "easy_small_ss_her_bounded",
-            [
-                "hindsight_bound",
-                "distance_floor",
-                "distance_ceiling",
-                "model_targets",
-                "optimistic_floor",
-                "bound_all_actions",
-                "bounded_policy",
-            ],
-        ),  # fmt: skip
-        (
-            "easy_small_ss_her_bounded agent.bounded_policy=false",
-            [
-                "hindsight_bound",
-                "distance_floor",
-                "distance_ceiling",
-                "model_targets",
-                "optimistic_floor",
-                "bound_all_actions",
-            ],
-        ),  # fmt: skip
+        ("easy_small_ss_her_bounded", [*TD_BOUNDS, "optimistic_floor", "bound_all_actions", "bounded_policy"]),
+        ("easy_small_ss_her_bounded agent.bounded_policy=false", [*TD_BOUNDS, "optimistic_floor", "bound_all_actions"]),
         (
             "easy_small_ss_her_bounded agent.optimistic_floor=false agent.bound_all_actions=false "
             "agent.bounded_policy=false",
-            ["hindsight_bound", "distance_floor", "distance_ceiling", "model_targets"],
+            TD_BOUNDS,
         ),
         ("easy_small_tabular_ss", []),
     ],
