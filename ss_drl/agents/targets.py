@@ -729,10 +729,11 @@ def assumptions(settings, holds: frozenset[str] = MAZE) -> dict[str, frozenset[s
         out["model_targets"] = ModelTargets.assumes
     if settings.optimistic_floor:
         out["optimistic_floor"] = DistanceFloor.assumes | ceiling.assumes
+    all_actions = frozenset({"count_model", "deterministic"})  # what holding every action of s_t assumes
     if settings.bound_all_actions:
-        out["bound_all_actions"] = frozenset({"count_model", "deterministic"})
-    if settings.bounded_policy:
-        out["bounded_policy"] = frozenset({"count_model", "deterministic"})
+        out["bound_all_actions"] = all_actions
+    if settings.bounded_policy:  # the policy reads those same all-action bounds
+        out["bounded_policy"] = all_actions
     return out
 
 
