@@ -150,8 +150,9 @@ def test_a_method_is_the_same_setting_on_every_maze(method):
 def test_the_replay_only_dqn_uses_no_count_model_bound_and_the_bounded_one_all(maze):
     """``<maze>_{dqn,dqn_her,ss,ss_her}`` is the replay-only DQN: no switch that reads the count model is on.
     ``<maze>_<method>_bounded`` is the model-bounded DQN: every one is on. The two differ in nothing else than the
-    bounds (and the k-step maximum, which the bounded one drops), and each learner is one setting for all four
-    methods."""
+    bounds, the k-step maximum (which the bounded one drops) and the update ratio (one update per two env steps for
+    the bounded one, whose policy reads the bounds: the notebook, session 51), and each learner is one setting for
+    all four methods."""
     assert set(COUNT_MODEL_KEYS) <= set(COUNT_MODEL_SWITCHES)
     agents = {}
     for method in (*REPLAY_ONLY, *BOUNDED):
@@ -167,7 +168,8 @@ def test_the_replay_only_dqn_uses_no_count_model_bound_and_the_bounded_one_all(m
         assert agents[f"{method}_bounded"] == agents[BOUNDED[0]]
     replay_only, bounded = agents[REPLAY_ONLY[0]], agents[BOUNDED[0]]
     differ = sorted(key for key in replay_only if replay_only[key] != bounded[key])
-    assert differ == sorted((*COUNT_MODEL_SWITCHES, "n_step_max")), differ
+    assert differ == sorted((*COUNT_MODEL_SWITCHES, "n_step_max", "train_freq")), differ
+    assert (replay_only["train_freq"], bounded["train_freq"]) == (1, 2)
 
 
 @pytest.mark.parametrize("method", REPLAY_ONLY)

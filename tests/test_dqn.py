@@ -979,3 +979,23 @@ def test_optimistic_floor_makes_the_ceiling_the_target_where_no_route_is_known_b
     torch.testing.assert_close(agent.td_target.others(batch, q, agent.loss.bootstrap), held)
     outside = others_loss(q, held, actions)
     torch.testing.assert_close(agent.loss(batch)["loss"], td_loss(agent, batch, expected) + outside)
+
+
+@pytest.mark.parametrize(("train_freq", "gradient_steps"), [(1, 1), (2, 1), (2, 3), (5, 2)])
+def test_updates_due_gives_gradient_steps_per_train_freq_env_steps_across_batches(train_freq, gradient_steps):
+    """``gradient_steps`` updates per ``train_freq`` env steps counted over the run, not per collection batch: with
+    batches of 3 env steps (not a multiple of 2 or 5) the updates come out exact, and none before
+    ``learning_starts``. The model-bounded learner runs at ``train_freq`` 2 (the notebook, session 51)."""
+    agent = make_agent(
+        f"agent.train_freq={train_freq}", f"agent.gradient_steps={gradient_steps}", "agent.learning_starts=30"
+    )
+    for _ in range(3):  # a batch (128) stored
+        agent.replay_buffer.extend(random_batch(agent.maze.n_cells).unsqueeze(1).expand(64, 1).clone())
+    due, env_steps = [], 0
+    while env_steps < 600:
+        env_steps += 3
+        due.append(agent.updates_due(env_steps, 3))
+    assert sum(due[:9]) == 0  # env steps 3..27: before learning_starts
+    # From the batch that reaches learning_starts (env steps 28-30) on, one round per train_freq env steps.
+    assert sum(due) == (600 // train_freq - 27 // train_freq) * gradient_steps
+    assert max(due) <= gradient_steps * (3 // train_freq + 1)
